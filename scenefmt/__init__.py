@@ -1,0 +1,65 @@
+"""The on-disk dataset contract, defined once (DESIGN.md section 3).
+
+Writers (``generators``) and readers (``svorf.data``, ``benchmark``) both import
+this package, so nothing else re-implements file names or conventions. It
+imports neither torch nor bpy; OpenImageIO is loaded lazily for depth EXRs.
+
+Layout of one split folder (e.g. ``data/clevr567/train/``)::
+
+    {idx:05d}_sc{scene:04d}_az{view:02d}.png        RGB, 8-bit sRGB, 3 channels
+    {stem}_RT.txt                                    4x4 camera-to-world, OpenCV axes
+    {stem}_azi_rot.txt                               3x3 rotation about world z by the azimuth
+    {stem}_mask.png                                  uORF-compatible grey-level mask
+    instances/{stem}.png                             8-bit instance ids, 0 = background
+    depth/{stem}.exr                                 float32 planar depth (camera z), world units
+    sc{scene:04d}.json                               full scene record (written last)
+    manifest.json                                    split-level metadata
+
+``idx`` is the global view index ``scene * n_views + view``.
+"""
+
+from scenefmt.layout import (
+    FORMAT_VERSION,
+    MASK_BG_LEVEL,
+    MASK_SENTINEL_LEVEL,
+    SplitLayout,
+    instances_from_uorf_mask,
+    is_scene_complete,
+    uorf_mask_from_instances,
+)
+from scenefmt.io import (
+    atomic_write_bytes,
+    atomic_write_json,
+    read_depth_exr,
+    read_instances,
+    read_json,
+    read_matrix_txt,
+    read_rgb,
+    write_depth_exr,
+    write_instances,
+    write_mask,
+    write_matrix_txt,
+    write_rgb,
+)
+
+__all__ = [
+    "FORMAT_VERSION",
+    "MASK_BG_LEVEL",
+    "MASK_SENTINEL_LEVEL",
+    "SplitLayout",
+    "atomic_write_bytes",
+    "atomic_write_json",
+    "instances_from_uorf_mask",
+    "is_scene_complete",
+    "read_depth_exr",
+    "read_instances",
+    "read_json",
+    "read_matrix_txt",
+    "read_rgb",
+    "uorf_mask_from_instances",
+    "write_depth_exr",
+    "write_instances",
+    "write_mask",
+    "write_matrix_txt",
+    "write_rgb",
+]

@@ -1,0 +1,150 @@
+"""File names and the uORF mask rule: the single place that knows them."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: Bumped whenever a file name, dtype or convention changes (see CHANGELOG.md).
+FORMAT_VERSION = "1.0"
+
+#: ``_mask.png`` grey levels. The uORF loader takes the background to be the
+#: *second-lowest* grey level of the mask after ``convert('L')``. To make that rule
+#: hold in every view (even a view with no visible object) one sentinel pixel, the
+#: top-left pixel (0, 0), which our cameras always see as background, is written at
+#: level 0; the background is level ``MASK_BG_LEVEL``; object ``k`` (1-based
+#: instance id) is ``MASK_BG_LEVEL + k * MASK_STEP``. The lossless instance ids in
+#: ``instances/`` do not carry the sentinel.
+MASK_SENTINEL_LEVEL = 0
+MASK_BG_LEVEL = 16
+MASK_STEP = 18
+MAX_INSTANCES = (255 - MASK_BG_LEVEL) // MASK_STEP  # 13
+
+_STEM_RE = re.compile(r"^(?P<idx>\d{5})_sc(?P<scene>\d{4})_az(?P<view>\d{2})$")
+
+
+@dataclass(frozen=True)
+class SplitLayout:
+    """Paths of every file of one split folder.
+
+    Args:
+        root: the split folder.
+        n_views: views per scene (4 for every preset); sets the global index.
+    """
+
+    root: Path
+    n_views: int = 4
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+        if self.n_views < 1:
+            raise ValueError(f"n_views must be >= 1, got {self.n_views}")
+
+    def stem(self, scene: int, view: int) -> str:
+        """``{idx:05d}_sc{scene:04d}_az{view:02d}`` with ``idx = scene * n_views + view``."""
+        if not 0 <= view < self.n_views:
+            raise ValueError(f"view must be in [0, {self.n_views}), got {view}")
+        if not 0 <= scene <= 9999:
+            raise ValueError(f"scene must be in [0, 9999] (sc%04d names), got {scene}")
+        return f"{scene * self.n_views + view:05d}_sc{scene:04d}_az{view:02d}"
+
+    def rgb(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}.png"
+
+    def rt(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}_RT.txt"
+
+    def azi_rot(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}_azi_rot.txt"
+
+    def mask(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}_mask.png"
+
+    def instances(self, scene: int, view: int) -> Path:
+        return self.root / "instances" / f"{self.stem(scene, view)}.png"
+
+    def depth(self, scene: int, view: int) -> Path:
+        return self.root / "depth" / f"{self.stem(scene, view)}.exr"
+
+    def scene_json(self, scene: int) -> Path:
+        return self.root / f"sc{scene:04d}.json"
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    def view_files(self, scene: int, view: int) -> list[Path]:
+        """Every per-view file, in the order a writer produces them."""
+        return [
+            self.rgb(scene, view),
+            self.rt(scene, view),
+            self.azi_rot(scene, view),
+            self.mask(scene, view),
+            self.instances(scene, view),
+            self.depth(scene, view),
+        ]
+
+    def scene_files(self, scene: int) -> list[Path]:
+        """Every file of a scene; the scene JSON comes last (it marks completion)."""
+        files = [p for v in range(self.n_views) for p in self.view_files(scene, v)]
+        return files + [self.scene_json(scene)]
+
+    def scene_indices(self) -> list[int]:
+        """Indices of scenes whose JSON exists, sorted."""
+        out = []
+        for p in self.root.glob("sc[0-9][0-9][0-9][0-9].json"):
+            out.append(int(p.stem[2:]))
+        return sorted(out)
+
+    @staticmethod
+    def parse_stem(stem: str) -> tuple[int, int, int]:
+        """Inverse of :meth:`stem`: ``(idx, scene, view)``."""
+        m = _STEM_RE.match(stem)
+        if m is None:
+            raise ValueError(f"not a view file stem of the form 00000_sc0000_az00: {stem!r}")
+        return int(m["idx"]), int(m["scene"]), int(m["view"])
+
+
+def is_scene_complete(layout: SplitLayout, scene: int) -> bool:
+    """True when the scene JSON and every per-view file exist (the writer's rule).
+
+    Writers move the per-view files into place first and the scene JSON last,
+    each by atomic rename, so a scene killed mid-write is never complete.
+    """
+    return all(p.is_file() for p in reversed(layout.scene_files(scene)))
+
+
+def uorf_mask_from_instances(ids: np.ndarray) -> np.ndarray:
+    """Build the uORF-compatible grey mask from instance ids.
+
+    Args:
+        ids: uint8 [H, W], 0 = background, k >= 1 = object k.
+
+    Returns:
+        uint8 [H, W]: sentinel 0 at pixel (0, 0), background ``MASK_BG_LEVEL``,
+        object k at ``MASK_BG_LEVEL + k * MASK_STEP``.
+    """
+    ids = np.asarray(ids)
+    if ids.ndim != 2:
+        raise ValueError(f"ids must be [H, W], got shape {ids.shape}")
+    if ids.max(initial=0) > MAX_INSTANCES:
+        raise ValueError(f"at most {MAX_INSTANCES} instances fit the mask, got id {ids.max()}")
+    if ids[0, 0] != 0:
+        raise ValueError("pixel (0, 0) must be background for the uORF mask sentinel")
+    mask = (MASK_BG_LEVEL + ids.astype(np.int32) * MASK_STEP).astype(np.uint8)
+    mask[0, 0] = MASK_SENTINEL_LEVEL
+    return mask
+
+
+def instances_from_uorf_mask(mask: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`uorf_mask_from_instances` (the sentinel reads as background)."""
+    mask = np.asarray(mask).astype(np.int32)
+    ids = (mask - MASK_BG_LEVEL) // MASK_STEP
+    ids[mask < MASK_BG_LEVEL] = 0
+    bad = (mask >= MASK_BG_LEVEL) & ((mask - MASK_BG_LEVEL) % MASK_STEP != 0)
+    if bad.any():
+        raise ValueError("mask has grey levels that are not on the instance grid")
+    return ids.astype(np.uint8)

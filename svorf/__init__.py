@@ -1,0 +1,1 @@
+"""svorf package."""
