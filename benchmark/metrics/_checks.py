@@ -20,7 +20,8 @@ def describe(x: object) -> str:
 def require_tensor(name: str, x: object, expected: str) -> Tensor:
     """Raise ValueError unless ``x`` is a torch tensor."""
     if not isinstance(x, Tensor):
-        raise ValueError(f"{name}: expected a torch.Tensor {expected}, got {describe(x)}")
+        # ValueError, not TypeError: the house rule is one exception type at boundaries.
+        raise ValueError(f"{name}: expected a torch.Tensor {expected}, got {describe(x)}")  # noqa: TRY004
     return x
 
 
@@ -40,8 +41,7 @@ def require_same_shape(name: str, x: Tensor, ref_name: str, ref: Tensor) -> None
     """Raise ValueError unless ``x`` has the shape of ``ref``."""
     if x.shape != ref.shape:
         raise ValueError(
-            f"{name}: expected the shape of {ref_name} {tuple(ref.shape)}, "
-            f"got {tuple(x.shape)}"
+            f"{name}: expected the shape of {ref_name} {tuple(ref.shape)}, got {tuple(x.shape)}"
         )
 
 

@@ -43,9 +43,7 @@ def _check_images(pred: object, gt: object, min_side: int = 1) -> tuple[Tensor, 
         raise ValueError(f"pred: expected a tensor {_EXPECTED}, got {describe(pred)}")
     require_same_shape("gt", gt, "pred", pred)
     if min(pred.shape[-2:]) < min_side:
-        raise ValueError(
-            f"pred: expected H and W of at least {min_side}, got {tuple(pred.shape)}"
-        )
+        raise ValueError(f"pred: expected H and W of at least {min_side}, got {tuple(pred.shape)}")
     if gt.device != pred.device:
         raise ValueError(f"gt: expected a tensor on {pred.device} like pred, got {gt.device}")
     f64 = torch.float64
@@ -127,4 +125,3 @@ def ssim(pred: Tensor, gt: Tensor) -> Tensor:
     ssim_map = num / den
     # Mean per channel (crop already done by the valid filter), then over channels.
     return ssim_map.view(batch, channels, -1).mean(2).mean(1)
-

@@ -54,7 +54,6 @@ import os
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from benchmark.metrics._checks import describe, require_float, require_same_shape, require_tensor
@@ -151,7 +150,9 @@ class LPIPSAlex(nn.Module):
         return total
 
 
-def lpips_weight_candidates(weights_path: str | os.PathLike | None = None) -> list[tuple[str, Path | None]]:
+def lpips_weight_candidates(
+    weights_path: str | os.PathLike | None = None,
+) -> list[tuple[str, Path | None]]:
     """The weight file locations in resolution order.
 
     Args:
@@ -200,10 +201,12 @@ def _load_cached(path: str, mtime_ns: int, size: int, device: str) -> LPIPSAlex:
     del mtime_ns, size
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+    except Exception as err:  # any unreadable file is the same user error
         raise ValueError(f"LPIPS weights {path}: not a readable torch state dict ({err})") from err
     if not isinstance(state, dict) or not all(isinstance(v, Tensor) for v in state.values()):
-        raise ValueError(f"LPIPS weights {path}: expected a flat dict of tensors, got {describe(state)}")
+        raise ValueError(
+            f"LPIPS weights {path}: expected a flat dict of tensors, got {describe(state)}"
+        )
     expected = _expected_shapes()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
@@ -288,7 +291,7 @@ def lpips_or_null(
 
     Example:
         >>> values, reason = lpips_or_null(render, target)  # doctest: +SKIP
-        >>> report["lpips"] = None if values is None else values.mean().item()
+        >>> report["lpips"] = None if values is None else values.mean().item()  # doctest: +SKIP
     """
     pred, gt = _check_images(pred, gt)
     searched = []

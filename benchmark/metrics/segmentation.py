@@ -225,9 +225,11 @@ def segmentation_metrics(
     require_same_shape("gt_views", gt_views, "pred_views", pred_views)
     batch, n_views = pred_views.shape[:2]
     if isinstance(input_view, bool) or not isinstance(input_view, int):
-        raise ValueError(f"input_view: expected an int, got {type(input_view).__name__}")
+        raise ValueError(f"input_view: expected an int, got {type(input_view).__name__}")  # noqa: TRY004
     if not -n_views <= input_view < n_views:
-        raise ValueError(f"input_view: expected an index in [-{n_views}, {n_views}), got {input_view}")
+        raise ValueError(
+            f"input_view: expected an index in [-{n_views}, {n_views}), got {input_view}"
+        )
     input_view %= n_views
 
     per_view_pred = pred_views.reshape(batch * n_views, -1)

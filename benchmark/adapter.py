@@ -1,0 +1,283 @@
+"""The one place where the benchmark touches the sVORF model package (DESIGN section 2).
+
+Where this sits: protocols never import ``svorf`` directly; they call the
+functions here, so a change in svorf's API is absorbed in one file. What the
+benchmark needs from svorf:
+
+- configs: :func:`model_config` (scale, preset, ablation variant) and
+  :func:`train_config` (scale, preset, seed, steps), both as frozen dataclasses
+  plus :func:`config_dict` to store them as JSON;
+- training: :func:`train` (resumable, into a run folder) and :func:`load_model`;
+- evaluation: :func:`open_dataset`, :func:`ground_truth`, :func:`predict_scene`;
+- data helpers: :func:`dataset_fingerprint`, :func:`write_synthetic_split`;
+- numerics: :func:`volume_render` (the ``stability`` protocol).
+
+Ablation variants (paper tables ``tab:ablation`` and ``tab:supp_ablation``; the
+packed-CLEVR-11 setting of ``tab:ab_num``) are ``ModelConfig`` field overrides in
+:data:`VARIANTS`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = [
+    "ADAPTER_VERSION",
+    "VARIANTS",
+    "VARIANT_LABELS",
+    "Prediction",
+    "SceneTruth",
+    "config_dict",
+    "dataset_fingerprint",
+    "ground_truth",
+    "num_slots",
+    "svorf_preset",
+    "load_model",
+    "model_config",
+    "open_dataset",
+    "predict_scene",
+    "train",
+    "train_config",
+    "volume_render",
+    "write_synthetic_split",
+]
+
+#: Bumped when anything here changes what a trained run or an evaluation means
+#: (it is part of the model cache key and of the evaluation cache key).
+ADAPTER_VERSION = "1"
+
+#: Ablation / setting variants as ModelConfig overrides.
+VARIANTS: dict[str, dict[str, Any]] = {
+    "full": {},
+    "wo_nvs": {"nvs": False},
+    "wo_cr": {"connectivity": False},
+    "density_weighted": {"composition": "density_weighted"},
+    "wo_sa": {"self_attention": False},
+    "wo_hypernetwork": {"hypernetwork": False},
+    "slot_attention": {"slot_module": "slot_attention"},
+    "slot_mixer": {"composition": "slot_mixer"},
+    # Paper 4.6 "Spatial Arrangements": 11 slots, 4 randomly masked off per training step.
+    "packed11": {"num_slots": 11, "slot_mask_train": 4},
+}
+
+VARIANT_LABELS: dict[str, str] = {
+    "full": "sVORF (ours)",
+    "wo_nvs": "sVORF (w/o NVS)",
+    "wo_cr": "sVORF (w/o CR)",
+    "density_weighted": "sVORF (density-weighted)",
+    "wo_sa": "sVORF (w/o SA)",
+    "wo_hypernetwork": "sVORF (w/o Hypernetwork)",
+    "slot_attention": "sVORF (w Slot-Attention)",
+    "slot_mixer": "sVORF (w SM)",
+    "packed11": "sVORF (11 slots, 4 masked)",
+}
+
+
+def _svorf_config():
+    from svorf import config
+
+    return config
+
+
+def _svorf_train():
+    try:
+        from svorf import train as svorf_train
+    except ImportError as err:  # pragma: no cover - depends on the svorf checkout
+        raise ImportError(
+            f"benchmark needs svorf.train (train, train_config, load_run, predict_scene): {err}"
+        ) from err
+    return svorf_train
+
+
+def svorf_preset(train_preset: str, variant: str) -> str:
+    """svorf's training-preset name for a benchmark model (``svorf.train.PRESETS``).
+
+    The packed-CLEVR-11 setting trains on CLEVR-567 data under svorf's
+    ``packed-clevr11`` preset (11 slots, 4 masked per step).
+    """
+    return "packed-clevr11" if variant == "packed11" else train_preset
+
+
+def num_slots(train_preset: str, variant: str = "full") -> int:
+    """K (background included) that svorf's preset registry gives this model."""
+    presets = _svorf_train().PRESETS
+    key = svorf_preset(train_preset, variant)
+    if key not in presets:
+        raise ValueError(f"svorf has no training preset {key!r}; known: {sorted(presets)}")
+    return int(presets[key].num_slots)
+
+
+def model_config(scale: str, train_preset: str, variant: str = "full", image_size: int | None = None) -> Any:
+    """The svorf ``ModelConfig`` of one benchmark model.
+
+    Args:
+        scale: ``smoke`` / ``cpu`` / ``paper`` (svorf's size registry).
+        train_preset: the dataset preset the model trains on (sets K via
+            ``svorf.train.PRESETS``: 8 for CLEVR-567, 5 for the Room datasets).
+        variant: a key of :data:`VARIANTS` (ablation switches, packed-11 setting).
+        image_size: encoder input side; None = svorf's default for the scale.
+
+    Raises:
+        ValueError: on an unknown variant or preset.
+    """
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown model variant {variant!r}; known: {sorted(VARIANTS)}")
+    st = _svorf_train()
+    key = svorf_preset(train_preset, variant)
+    mcfg, _ = st.run_configs(scale, key, image_size=image_size)
+    overrides = dict(VARIANTS[variant])
+    return dataclasses.replace(mcfg, **overrides) if overrides else mcfg
+
+
+def train_config(
+    scale: str, train_preset: str, variant: str, seed: int, device: str, steps: int | None = None
+) -> Any:
+    """svorf's ``TrainConfig`` for the model, with the benchmark's seed, device (and steps)."""
+    st = _svorf_train()
+    changes: dict[str, Any] = {"seed": int(seed), "device": device}
+    if steps is not None:
+        changes["steps"] = int(steps)
+    return st.train_config(scale, svorf_preset(train_preset, variant), **changes)
+
+
+def config_dict(cfg: Any) -> dict[str, Any]:
+    """A frozen config dataclass as a plain JSON-able dict."""
+    if hasattr(cfg, "to_dict"):
+        return cfg.to_dict()
+    d = dataclasses.asdict(cfg)
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+def train(
+    data_dir: str | os.PathLike,
+    run_dir: str | os.PathLike,
+    model_cfg: Any,
+    train_cfg: Any,
+    *,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Train (or resume training) one model into ``run_dir`` (svorf checkpoints there).
+
+    Returns:
+        svorf's run summary (steps, final_loss, wall_s, s_per_step, peak_rss_mb,
+        params, device...), JSON-able (non-finite floats become None).
+    """
+    st = _svorf_train()
+    out = st.train(Path(data_dir), Path(run_dir), model_cfg, train_cfg, resume=True, progress=progress)
+    return _jsonable_summary(out)
+
+
+def _jsonable_summary(out: Any) -> dict[str, Any]:
+    if out is None:
+        return {}
+    if dataclasses.is_dataclass(out):
+        out = dataclasses.asdict(out)
+    if not isinstance(out, dict):
+        return {}
+    keep = {}
+    for k, v in out.items():
+        if isinstance(v, (bool, int, str)) or v is None:
+            keep[k] = v
+        elif isinstance(v, float):
+            keep[k] = v if np.isfinite(v) else None
+    return keep
+
+
+def load_model(run_dir: str | os.PathLike, device: str = "cpu") -> Any:
+    """The trained model of ``run_dir`` in eval mode on ``device``."""
+    model, _info = _svorf_train().load_run(Path(run_dir), device=device)
+    model.eval()
+    return model
+
+
+def open_dataset(root: str | os.PathLike, image_size: int | None = None) -> Any:
+    """svorf's in-memory ``MultiViewDataset`` of a split folder."""
+    from svorf.data import MultiViewDataset
+
+    return MultiViewDataset(root, image_size=image_size)
+
+
+@dataclass(frozen=True)
+class SceneTruth:
+    """Ground truth of one test scene (CPU tensors).
+
+    Attributes:
+        images: float32 [V, 3, H, W] in [0, 1].
+        instances: int64 [V, H, W], 0 = background.
+        depth_z: float32 [V, H, W] planar depth (world units), inf/nan = none.
+    """
+
+    images: torch.Tensor
+    instances: torch.Tensor
+    depth_z: torch.Tensor
+
+
+def ground_truth(dataset: Any, index: int) -> SceneTruth:
+    """Ground truth of the scene at position ``index`` of ``dataset``."""
+    sv = dataset[index]
+    return SceneTruth(images=sv.images, instances=sv.instances.long(), depth_z=sv.depth_z.float())
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """What the model renders for one scene from its input view (CPU tensors).
+
+    Attributes:
+        rgb: float32 [V, 3, H, W] in [0, 1] (the input view's is the reconstruction).
+        depth_z: float32 [V, H, W] rendered planar depth, world units.
+        labels: int64 [V, H, W] arg-max slot per pixel.
+    """
+
+    rgb: torch.Tensor
+    depth_z: torch.Tensor
+    labels: torch.Tensor
+
+
+def predict_scene(model: Any, dataset: Any, index: int, input_view: int = 0) -> Prediction:
+    """Render every view of scene ``index`` from ``input_view`` with ``model``."""
+    st = _svorf_train()
+    with torch.no_grad():
+        out = st.predict_scene(model, dataset, index, input_view=input_view)
+    get = out.get if isinstance(out, dict) else lambda k, d=None: getattr(out, k, d)
+    rgb = torch.as_tensor(get("rgb")).detach().float().cpu()
+    if rgb.dim() == 4 and rgb.shape[-1] == 3:  # [V, H, W, 3] -> [V, 3, H, W]
+        rgb = rgb.permute(0, 3, 1, 2)
+    depth = get("depth_z")
+    if depth is None:
+        depth = get("depth")
+    labels = get("labels")
+    if labels is None:
+        labels = get("segmentation")
+    return Prediction(
+        rgb=rgb.clamp(0.0, 1.0).contiguous(),
+        depth_z=torch.as_tensor(depth).detach().float().cpu(),
+        labels=torch.as_tensor(labels).detach().long().cpu(),
+    )
+
+
+def dataset_fingerprint(root: str | os.PathLike) -> str:
+    """SHA-256 (hex) over a split's manifest and scene JSONs (svorf's definition)."""
+    from svorf.data import dataset_fingerprint as fp
+
+    return fp(root)
+
+
+def write_synthetic_split(root: str | os.PathLike, **kwargs: Any) -> Path:
+    """svorf's analytic test-fixture writer (spheres on a plate, exact masks/depth)."""
+    from svorf.synthetic import write_synthetic_split as write
+
+    return write(root, **kwargs)
+
+
+def volume_render(sigma: torch.Tensor, rgb: torch.Tensor, t: torch.Tensor, last_delta: float = 1e10):
+    """svorf's volume renderer: ``(rgb [...,3], depth [...], weights [...,N], acc [...])``."""
+    from svorf.render import volume_render as vr
+
+    return vr(sigma, rgb, t, last_delta=last_delta)

@@ -1,0 +1,271 @@
+"""Scoring a trained model (or a chance baseline) on a test split.
+
+Where this sits: protocols call :func:`evaluate_model` once per (model, test
+split) and :func:`evaluate_baselines` once per test split; both return
+:class:`EvalResult` whose ``metrics`` are aggregated over scenes in report units
+(ARI family in percent, as the paper prints). The metric functions come from
+:mod:`benchmark.metrics`; the model is reached only through :mod:`benchmark.adapter`.
+
+Protocol (paper 4.1/4.2): view ``input_view`` (0) is the model's input; ARI and
+FG-ARI are scored on it, NV-ARI on the other (novel) views, ARI*/FG-ARI* over all
+views; PSNR / SSIM / LPIPS and depth errors on the novel views.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from benchmark import adapter
+from benchmark.metrics import depth_errors, lpips_or_null, psnr, segmentation_metrics, ssim
+
+__all__ = ["EvalResult", "LPIPS_REASON", "aggregate", "evaluate_baselines", "evaluate_model"]
+
+SEG_KEYS = ("ari", "fg_ari", "nv_ari", "nv_fg_ari", "nv_ari_last", "ari_all", "fg_ari_all")
+IMAGE_KEYS = ("psnr", "ssim", "lpips")
+DEPTH_KEYS = ("depth_abs_rel", "depth_rmse")
+#: Short reason code for LPIPS; the full explanation (paths searched) goes into notes.
+LPIPS_REASON = "lpips_unavailable"
+
+
+@dataclass
+class EvalResult:
+    """Aggregated scores of one (model or baseline, test split).
+
+    Attributes:
+        metrics: metric -> mean over scenes (report units) or None.
+        null_reasons: metric -> why it is None.
+        n_scenes: scenes scored.
+        nan_counts: metric -> scenes skipped as NaN (e.g. no foreground in a view).
+        per_scene: metric -> list of per-scene values (None for NaN).
+        wall_s: evaluation time.
+        details: free-form notes (e.g. the full LPIPS reason).
+        sample: arrays of the first scene for the qualitative figure (not in JSON).
+    """
+
+    metrics: dict[str, float | None]
+    null_reasons: dict[str, str]
+    n_scenes: int
+    nan_counts: dict[str, int] = field(default_factory=dict)
+    per_scene: dict[str, list[float | None]] = field(default_factory=dict)
+    wall_s: float = 0.0
+    details: dict[str, str] = field(default_factory=dict)
+    sample: dict[str, np.ndarray] | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "metrics": self.metrics,
+            "null_reasons": self.null_reasons,
+            "n_scenes": self.n_scenes,
+            "nan_counts": self.nan_counts,
+            "per_scene": self.per_scene,
+            "wall_s": self.wall_s,
+            "details": self.details,
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> EvalResult:
+        return cls(
+            metrics=d["metrics"],
+            null_reasons=d["null_reasons"],
+            n_scenes=d["n_scenes"],
+            nan_counts=d.get("nan_counts", {}),
+            per_scene=d.get("per_scene", {}),
+            wall_s=d.get("wall_s", 0.0),
+            details=d.get("details", {}),
+        )
+
+
+_PERCENT = set(SEG_KEYS)
+
+
+def aggregate(per_scene: dict[str, list[float]], reasons: dict[str, str] | None = None) -> tuple[
+    dict[str, float | None], dict[str, str], dict[str, int], dict[str, list[float | None]]
+]:
+    """Mean over scenes ignoring NaN; ARI family scaled to percent.
+
+    Returns:
+        ``(metrics, null_reasons, nan_counts, per_scene_json)``.
+    """
+    reasons = dict(reasons or {})
+    metrics: dict[str, float | None] = {}
+    nulls: dict[str, str] = {}
+    nans: dict[str, int] = {}
+    scenes_json: dict[str, list[float | None]] = {}
+    for k, values in per_scene.items():
+        arr = np.asarray(values, dtype=np.float64)
+        scale = 100.0 if k in _PERCENT else 1.0
+        finite = np.isfinite(arr)
+        nans[k] = int((~finite).sum())
+        scenes_json[k] = [float(v * scale) if f else None for v, f in zip(arr, finite, strict=True)]
+        if finite.any():
+            metrics[k] = float(arr[finite].mean() * scale)
+        else:
+            metrics[k] = None
+            nulls[k] = reasons.get(k, "no_finite_value (e.g. no foreground pixels in any scene)")
+    for k, why in reasons.items():
+        if k not in metrics:
+            metrics[k] = None
+            nulls[k] = why
+    return metrics, nulls, nans, scenes_json
+
+
+def _score_scene(
+    pred_rgb: Tensor | None,
+    pred_depth: Tensor | None,
+    pred_labels: Tensor,
+    truth: adapter.SceneTruth,
+    input_view: int,
+    lpips_weights: str | None,
+    acc: dict[str, list[float]],
+    reasons: dict[str, str],
+    details: dict[str, str],
+) -> None:
+    seg = segmentation_metrics(pred_labels[None], truth.instances[None], input_view=input_view)
+    for k in SEG_KEYS:
+        acc.setdefault(k, []).append(float(seg[k][0]))
+    n_views = truth.images.shape[0]
+    novel = [v for v in range(n_views) if v != input_view]
+    if pred_rgb is not None and novel:
+        p, g = pred_rgb[novel].float(), truth.images[novel].float()
+        acc.setdefault("psnr", []).append(float(psnr(p, g).mean()))
+        acc.setdefault("ssim", []).append(float(ssim(p, g).mean()))
+        if "lpips" not in reasons:
+            values, why = lpips_or_null(p, g, weights_path=lpips_weights)
+            if values is None:
+                reasons["lpips"] = LPIPS_REASON
+                details["lpips"] = str(why)
+            else:
+                acc.setdefault("lpips", []).append(float(values.mean()))
+    if pred_depth is not None and novel:
+        err = depth_errors(pred_depth[novel].float(), truth.depth_z[novel].float())
+        acc.setdefault("depth_abs_rel", []).append(float(torch.nanmean(err["abs_rel"])))
+        acc.setdefault("depth_rmse", []).append(float(torch.nanmean(err["rmse"])))
+
+
+def _scene_indices(dataset: Any, max_scenes: int | None) -> list[int]:
+    n = len(dataset)
+    return list(range(n if max_scenes is None else min(n, max_scenes)))
+
+
+def evaluate_model(
+    model: Any,
+    dataset: Any,
+    *,
+    input_view: int = 0,
+    max_scenes: int | None = None,
+    lpips_weights: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> EvalResult:
+    """Score ``model`` on every scene of ``dataset`` (segmentation, image and depth metrics).
+
+    Args:
+        model: from :func:`benchmark.adapter.load_model`.
+        dataset: from :func:`benchmark.adapter.open_dataset` (the test split).
+        input_view: the view the model sees.
+        max_scenes: score only the first scenes (None = all).
+        lpips_weights: optional LPIPS weight file.
+        progress: optional callback ``(done, total)``.
+
+    Returns:
+        The aggregated :class:`EvalResult`; ``sample`` holds scene 0's arrays.
+    """
+    t0 = time.perf_counter()
+    acc: dict[str, list[float]] = {}
+    reasons: dict[str, str] = {}
+    details: dict[str, str] = {}
+    sample = None
+    idx = _scene_indices(dataset, max_scenes)
+    for j, i in enumerate(idx):
+        truth = adapter.ground_truth(dataset, i)
+        pred = adapter.predict_scene(model, dataset, i, input_view=input_view)
+        if pred.labels.shape != truth.instances.shape:
+            raise ValueError(
+                f"predict_scene returned labels {tuple(pred.labels.shape)}, expected "
+                f"{tuple(truth.instances.shape)} like the ground truth"
+            )
+        _score_scene(pred.rgb, pred.depth_z, pred.labels, truth, input_view, lpips_weights, acc, reasons, details)
+        if sample is None:
+            sample = {
+                "gt_rgb": truth.images.permute(0, 2, 3, 1).numpy(),
+                "pred_rgb": pred.rgb.permute(0, 2, 3, 1).numpy(),
+                "pred_labels": pred.labels.numpy(),
+                "gt_labels": truth.instances.numpy(),
+                "pred_depth": pred.depth_z.numpy(),
+                "gt_depth": truth.depth_z.numpy(),
+            }
+        if progress:
+            progress(j + 1, len(idx))
+    metrics, nulls, nans, scenes = aggregate(acc, reasons)
+    return EvalResult(metrics, nulls, len(idx), nans, scenes, time.perf_counter() - t0, details, sample)
+
+
+BASELINES = {
+    "one_label": "chance: all pixels one label",
+    "random_slots": "chance: uniform random slot per pixel",
+    "median_colour": "chance: flat median colour of the input view",
+}
+
+
+def evaluate_baselines(
+    dataset: Any,
+    num_slots: int,
+    *,
+    input_view: int = 0,
+    max_scenes: int | None = None,
+    seed: int = 0,
+    lpips_weights: str | None = None,
+) -> dict[str, EvalResult]:
+    """Chance baselines on a test split, scored exactly like a model.
+
+    - ``one_label``: every pixel of every view gets label 0 (ARI 0, FG-ARI 0 unless a
+      scene shows a single object).
+    - ``random_slots``: each pixel gets a uniform random slot in ``[0, num_slots)``
+      (seeded); the expected ARI of an uninformed labeling.
+    - ``median_colour``: novel views predicted as a flat image of the input view's
+      per-channel median colour (PSNR/SSIM/LPIPS floor of an image-independent guess).
+
+    Returns:
+        baseline name -> :class:`EvalResult`.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    out: dict[str, dict[str, list[float]]] = {k: {} for k in BASELINES}
+    reasons: dict[str, dict[str, str]] = {k: {} for k in BASELINES}
+    details: dict[str, dict[str, str]] = {k: {} for k in BASELINES}
+    t0 = time.perf_counter()
+    idx = _scene_indices(dataset, max_scenes)
+    for i in idx:
+        truth = adapter.ground_truth(dataset, i)
+        shape = truth.instances.shape
+        ones = torch.zeros(shape, dtype=torch.long)
+        _score_scene(None, None, ones, truth, input_view, lpips_weights, out["one_label"], reasons["one_label"], details["one_label"])
+        rnd = torch.randint(0, num_slots, shape, generator=gen)
+        _score_scene(None, None, rnd, truth, input_view, lpips_weights, out["random_slots"], reasons["random_slots"], details["random_slots"])
+        med = truth.images[input_view].flatten(1).median(dim=1).values  # [3]
+        flat = med[None, :, None, None].expand_as(truth.images).contiguous()
+        seg = {}
+        _score_scene(flat, None, ones, truth, input_view, lpips_weights, seg, reasons["median_colour"], details["median_colour"])
+        for k in IMAGE_KEYS:
+            if k in seg:
+                out["median_colour"].setdefault(k, []).extend(seg[k])
+    wall = (time.perf_counter() - t0) / len(BASELINES)
+    results = {}
+    for name in BASELINES:
+        if name == "median_colour":
+            keep = {k: v for k, v in reasons[name].items() if k in IMAGE_KEYS}
+        else:
+            keep = {}
+        m, nulls, nans, scenes = aggregate(out[name], keep)
+        results[name] = EvalResult(m, nulls, len(idx), nans, scenes, wall, details[name])
+    return results
+
+
+def finite_or_none(x: float | None) -> float | None:
+    """``x`` if it is a finite float, else None."""
+    return x if x is not None and math.isfinite(x) else None

@@ -1,0 +1,174 @@
+"""PNG figures beside each report (matplotlib, Agg backend; no display needed).
+
+Where this sits: protocols call these after their rows are final. The
+qualitative grid shows one test scene per dataset (segmentation / nvs); the bar
+chart compares measured rows with the paper's (ablation / generalization). Every
+function writes atomically and returns the file name relative to the report
+folder, which goes into the report's ``figures`` list.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from scenefmt import atomic_write_bytes
+
+__all__ = ["bar_chart", "qualitative_grid", "label_colors"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig: Any, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    _plt().close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def label_colors(labels: np.ndarray) -> np.ndarray:
+    """Integer label map ``[H, W]`` -> RGB float ``[H, W, 3]`` (label 0 dark grey).
+
+    The palette is fixed per label value so the same slot / instance keeps its
+    colour across views.
+    """
+    rng = np.random.default_rng(12345)
+    palette = rng.uniform(0.15, 1.0, size=(256, 3))
+    palette[0] = (0.2, 0.2, 0.2)
+    return palette[np.asarray(labels, dtype=np.int64) % 256]
+
+
+def qualitative_grid(
+    path: str | os.PathLike,
+    title: str,
+    gt_rgb: np.ndarray,
+    pred_rgb: np.ndarray,
+    pred_labels: np.ndarray,
+    gt_labels: np.ndarray,
+    pred_depth: np.ndarray,
+    gt_depth: np.ndarray | None,
+    input_view: int = 0,
+) -> str:
+    """One scene, every view: ground truth, render, masks and depth.
+
+    Rows: ground-truth RGB, rendered RGB (the input view's render is the
+    reconstruction, the others are novel views), predicted slot masks,
+    ground-truth instance masks, rendered depth, ground-truth depth.
+
+    Args:
+        path: Output PNG.
+        title: Figure title (dataset, model, scale).
+        gt_rgb: Float ``[V, H, W, 3]`` in [0, 1].
+        pred_rgb: Float ``[V, H, W, 3]`` in [0, 1].
+        pred_labels: Integer ``[V, H, W]`` arg-max slot per pixel.
+        gt_labels: Integer ``[V, H, W]`` instance ids (0 = background).
+        pred_depth: Float ``[V, H, W]`` rendered planar depth, world units.
+        gt_depth: Float ``[V, H, W]`` or None; inf/0 = background.
+        input_view: The view the model was conditioned on.
+
+    Returns:
+        The file name of ``path``.
+    """
+    plt = _plt()
+    path = Path(path)
+    n_views = gt_rgb.shape[0]
+    finite = np.isfinite(gt_depth) & (gt_depth > 0) if gt_depth is not None else None
+    vals = [pred_depth[np.isfinite(pred_depth)]]
+    if finite is not None and finite.any():
+        vals.append(gt_depth[finite])
+    allv = np.concatenate([v.ravel() for v in vals]) if vals else np.array([0.0, 1.0])
+    lo, hi = (np.percentile(allv, 1), np.percentile(allv, 99)) if allv.size else (0.0, 1.0)
+    if not hi > lo:
+        hi = lo + 1.0
+    rows = [
+        ("GT RGB", [np.clip(gt_rgb[v], 0, 1) for v in range(n_views)], None),
+        ("render", [np.clip(pred_rgb[v], 0, 1) for v in range(n_views)], None),
+        ("pred. slots", [label_colors(pred_labels[v]) for v in range(n_views)], None),
+        ("GT masks", [label_colors(gt_labels[v]) for v in range(n_views)], None),
+        ("pred. depth", [pred_depth[v] for v in range(n_views)], "viridis"),
+    ]
+    if gt_depth is not None:
+        shown = [np.where(finite[v], gt_depth[v], np.nan) for v in range(n_views)]
+        rows.append(("GT depth", shown, "viridis"))
+    fig, axes = plt.subplots(
+        len(rows), n_views, figsize=(1.6 * n_views + 0.6, 1.6 * len(rows) + 0.5), squeeze=False
+    )
+    for r, (name, images, cmap) in enumerate(rows):
+        for v in range(n_views):
+            ax = axes[r][v]
+            if cmap is None:
+                ax.imshow(images[v], interpolation="nearest")
+            else:
+                ax.imshow(images[v], cmap=cmap, vmin=lo, vmax=hi, interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title("input (view %d)" % v if v == input_view else "novel view %d" % v, fontsize=8)
+            if v == 0:
+                ax.set_ylabel(name, fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    _save(fig, path)
+    return path.name
+
+
+def bar_chart(
+    path: str | os.PathLike,
+    title: str,
+    groups: list[dict[str, Any]],
+    metrics: list[str],
+    chance: dict[str, float] | None = None,
+) -> str:
+    """Grouped bars of measured vs paper values, one panel per metric.
+
+    Args:
+        path: Output PNG.
+        title: Figure title.
+        groups: One dict per model row: ``{"label": str, "paper": {metric: v|None},
+            "measured": {metric: v|None}}``.
+        metrics: Metric names to plot, one panel each.
+        chance: Optional ``{metric: value}`` drawn as a dashed line (chance baseline).
+
+    Returns:
+        The file name of ``path``.
+    """
+    plt = _plt()
+    path = Path(path)
+    n = len(groups)
+    fig, axes = plt.subplots(
+        1, len(metrics), figsize=(max(4.0, 0.9 * n + 1.5) * len(metrics), 3.8), squeeze=False
+    )
+    x = np.arange(n)
+    for ax, metric in zip(axes[0], metrics, strict=True):
+        paper = [g["paper"].get(metric) for g in groups]
+        meas = [g["measured"].get(metric) for g in groups]
+        pv = [np.nan if v is None else v for v in paper]
+        mv = [np.nan if v is None else v for v in meas]
+        ax.bar(x - 0.2, pv, 0.4, label="paper", color="#9e9e9e")
+        ax.bar(x + 0.2, mv, 0.4, label="measured", color="#1f77b4")
+        for xi, v in zip(x, paper, strict=True):
+            if v is None:
+                ax.text(xi - 0.2, 0.5, "n/a", ha="center", va="bottom", fontsize=6, rotation=90)
+        for xi, v in zip(x, meas, strict=True):
+            if v is None:
+                ax.text(xi + 0.2, 0.5, "null", ha="center", va="bottom", fontsize=6, rotation=90)
+        if chance and chance.get(metric) is not None:
+            ax.axhline(chance[metric], color="#d62728", ls="--", lw=1, label="chance baseline")
+        ax.set_xticks(x)
+        ax.set_xticklabels([g["label"] for g in groups], rotation=35, ha="right", fontsize=7)
+        ax.set_title(metric, fontsize=9)
+        ax.set_ylim(min(0.0, np.nanmin(mv + pv + [0.0]) - 5), 100.0)
+        ax.legend(fontsize=7)
+    fig.suptitle(title, fontsize=10)
+    _save(fig, path)
+    return path.name

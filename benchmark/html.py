@@ -1,0 +1,216 @@
+"""One static HTML page per report folder (``index.html``): tables and figures.
+
+Where this sits: after a protocol writes ``report.json`` and its PNG figures, it
+calls :func:`write_index` on the folder. The page is self-contained (inline CSS,
+no script, images referenced by relative file name), so it opens from disk or
+any static file server, and renders headless::
+
+    chromium --headless --no-sandbox --disable-gpu --window-size=1400,2400 \
+        --screenshot=shot.png file:///abs/path/to/report/index.html
+
+(:func:`render_screenshot` runs exactly that.)
+"""
+
+from __future__ import annotations
+
+import html
+import os
+import shutil
+import subprocess
+from pathlib import Path
+from typing import Any
+
+from scenefmt import atomic_write_bytes
+
+from benchmark.paper_numbers import PAPER_TABLES
+
+__all__ = ["chromium_binary", "fmt_value", "render_html", "render_screenshot", "write_index"]
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:24px;
+color:#222;max-width:1300px}
+h1{font-size:22px}h2{font-size:18px;margin-top:28px;border-bottom:1px solid #ddd}
+table{border-collapse:collapse;margin:8px 0 16px 0;font-size:13px}
+th,td{border:1px solid #ccc;padding:3px 8px;text-align:right}
+th{background:#f0f0f0}td.l,th.l{text-align:left}
+tr.paper td{color:#555;background:#fafafa}tr.measured td{background:#eef5ff}
+tr.baseline td{background:#fff4e5;font-style:italic}
+.warn{background:#fdecea;border:1px solid #f5c2c0;padding:8px 12px;margin:8px 0}
+.ok{background:#e8f5e9;border:1px solid #b7dfb9;padding:8px 12px;margin:8px 0}
+.meta td{text-align:left}img{max-width:100%;border:1px solid #ddd;margin:6px 0}
+code{background:#f4f4f4;padding:0 3px}
+"""
+
+
+def fmt_value(v: Any, metric: str = "") -> str:
+    """Format a metric value for a table cell (null -> an em dash)."""
+    if v is None:
+        return "\u2014"
+    if isinstance(v, bool):
+        return str(v)
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if metric in ("ssim", "lpips") or abs(v) < 1:
+            return f"{v:.4f}"
+        return f"{v:.2f}"
+    return html.escape(str(v))
+
+
+def _e(x: Any) -> str:
+    return html.escape(str(x))
+
+
+def _rows_table(rows: list[dict[str, Any]], scale: str) -> str:
+    metrics: list[str] = []
+    for r in rows:
+        for m in r["metrics"]:
+            if m not in metrics:
+                metrics.append(m)
+    head = "".join(f"<th>{_e(m)}</th>" for m in metrics)
+    out = [
+        "<table><tr><th class=l>model</th><th class=l>dataset</th><th class=l>source</th>"
+        f"<th>scenes</th>{head}<th class=l>notes</th></tr>"
+    ]
+    for r in rows:
+        src = r["source"]
+        label = src if src != "measured" else f"measured ({scale})"
+        cells = []
+        for m in metrics:
+            v = r["metrics"].get(m, None) if m in r["metrics"] else None
+            title = r["null_reasons"].get(m, "") if m in r["metrics"] and v is None else ""
+            cells.append(f"<td title='{_e(title)}'>{fmt_value(v, m)}</td>")
+        notes = []
+        if r.get("note"):
+            notes.append(_e(r["note"]))
+        for m, why in sorted(r["null_reasons"].items()):
+            notes.append(f"{_e(m)}: {_e(why)[:120]}")
+        out.append(
+            f"<tr class={_e(src)}><td class=l>{_e(r['model'])}</td><td class=l>{_e(r['dataset'])}</td>"
+            f"<td class=l>{_e(label)}</td><td>{_e(r.get('n_scenes', ''))}</td>{''.join(cells)}"
+            f"<td class=l>{'<br>'.join(notes)}</td></tr>"
+        )
+    out.append("</table>")
+    return "".join(out)
+
+
+def render_html(report: dict[str, Any]) -> str:
+    """The page for one report dict (pure function; see :func:`write_index`)."""
+    scale = report["scale"]
+    title = f"sVORF benchmark: {report['protocol']} ({scale})"
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>",
+        f"<h1>{_e(title)}</h1>",
+    ]
+    for v in report.get("verdicts", []):
+        cls = "ok" if v.get("decomposes") else "warn"
+        parts.append(f"<div class={cls}><b>{_e(v['dataset'])} / {_e(v['model'])}:</b> {_e(v['message'])}</div>")
+    if report.get("status") != "complete":
+        parts.append("<div class=warn>Report status: partial (some rows are missing).</div>")
+    hw = report["hardware"]
+    git = report["git"]
+    wall = report["wall_time_s"]
+    meta = [
+        ("protocol / scale", f"{report['protocol']} / {scale}"),
+        ("created (UTC)", report["created_utc"]),
+        ("git commit", git.get("commit") or f"unknown ({git.get('reason')})"),
+        ("hardware", f"{hw['cpu_model']}, {hw['cpu_cores']} cores, device {hw['device']}"
+         + (f" ({hw['gpu_name']})" if hw.get("gpu_name") else "")),
+        ("torch / python", f"{hw['torch_version']} / {hw['python_version']}"),
+        ("wall time (s)", ", ".join(f"{k} {wall[k]:.1f}" for k in ("data", "training", "evaluation", "total"))),
+        ("seeds", ", ".join(f"{k}={v}" for k, v in report["seeds"].items())),
+    ]
+    parts.append("<table class=meta>")
+    parts.extend(f"<tr><th class=l>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in meta)
+    parts.append("</table>")
+    if report.get("notes"):
+        parts.append("<h2>Notes</h2><ul>")
+        parts.extend(f"<li>{_e(n)}</li>" for n in report["notes"])
+        parts.append("</ul>")
+
+    # Rows grouped by table, in first-seen order.
+    tables: dict[str, list[dict[str, Any]]] = {}
+    for r in report["rows"]:
+        tables.setdefault(r["table"], []).append(r)
+    for table, rows in tables.items():
+        caption = PAPER_TABLES.get(table, {}).get("caption", "")
+        parts.append(f"<h2>{_e(table)}</h2><p>{_e(caption)}</p>")
+        parts.append(_rows_table(rows, scale))
+
+    if report.get("figures"):
+        parts.append("<h2>Figures</h2>")
+        for f in report["figures"]:
+            parts.append(f"<div><p><code>{_e(f)}</code></p><img src='{_e(f)}' alt='{_e(f)}'></div>")
+
+    parts.append("<h2>Datasets</h2><table><tr><th class=l>name</th><th class=l>split</th>"
+                 "<th>scenes</th><th>res.</th><th class=l>source</th><th class=l>fingerprint</th></tr>")
+    for d in report["datasets"]:
+        parts.append(
+            f"<tr><td class=l>{_e(d['name'])}</td><td class=l>{_e(d['split'])}</td><td>{d['n_scenes']}</td>"
+            f"<td>{d['resolution']}</td><td class=l>{_e(d['source'])}</td><td class=l><code>{_e(d['fingerprint'])}</code></td></tr>"
+        )
+    parts.append("</table>")
+    if report["models"]:
+        parts.append("<h2>Models</h2><table><tr><th class=l>run key</th><th class=l>variant</th>"
+                     "<th class=l>train data</th><th>seed</th><th>train s</th><th class=l>reused</th></tr>")
+        for m in report["models"]:
+            parts.append(
+                f"<tr><td class=l><code>{_e(m['run_key'])}</code></td><td class=l>{_e(m['variant'])}</td>"
+                f"<td class=l>{_e(m['train_dataset'])}</td><td>{m['seed']}</td>"
+                f"<td>{m['train_wall_s']:.1f}</td><td class=l>{m['reused']}</td></tr>"
+            )
+        parts.append("</table><p>Full model and training configs are in <code>report.json</code>.</p>")
+    parts.append("<h2>Scale settings</h2><pre>")
+    parts.append(_e(_pretty(report.get("scale_settings", {}))))
+    parts.append("</pre></body></html>\n")
+    return "".join(parts)
+
+
+def _pretty(obj: Any) -> str:
+    import json
+
+    return json.dumps(obj, indent=2, sort_keys=True)
+
+
+def write_index(folder: str | os.PathLike, report: dict[str, Any]) -> Path:
+    """Write ``index.html`` for ``report`` into ``folder`` (atomically)."""
+    path = Path(folder) / "index.html"
+    atomic_write_bytes(path, render_html(report).encode())
+    return path
+
+
+def chromium_binary() -> str | None:
+    """Path of a headless-capable Chromium (or Chrome), or None if none is installed."""
+    for name in ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable"):
+        found = shutil.which(name)
+        if found:
+            return found
+    return None
+
+
+def render_screenshot(
+    index_html: str | os.PathLike,
+    png: str | os.PathLike,
+    size: tuple[int, int] = (1400, 2400),
+    timeout_s: float = 120.0,
+) -> Path:
+    """Render a page with headless Chromium into a PNG.
+
+    Raises:
+        FileNotFoundError: If no Chromium binary is installed (``apt-get install -y chromium``).
+        RuntimeError: If Chromium fails or writes no file.
+    """
+    exe = chromium_binary()
+    if exe is None:
+        raise FileNotFoundError("no chromium binary on PATH; install it with: apt-get install -y chromium")
+    png = Path(png).resolve()
+    url = Path(index_html).resolve().as_uri()
+    cmd = [
+        exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+        f"--window-size={size[0]},{size[1]}", f"--screenshot={png}", url,
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+    if not png.is_file():
+        raise RuntimeError(f"chromium wrote no screenshot (rc={proc.returncode}): {proc.stderr[-2000:]}")
+    return png

@@ -1,0 +1,158 @@
+"""``svorf`` command line: a thin layer over :mod:`svorf.train` and :mod:`svorf.viz`.
+
+Usage::
+
+    svorf train --data DIR --preset clevr567 --scale smoke|cpu|paper --out RUN
+                [--steps N] [--resume] [--seed S] [--eval-data DIR] [--image-size N]
+                [--device auto|cpu|cuda] [--max-scenes N] [--no-progress]
+    svorf render RUN --data DIR --scene I [--out DIR] [--input-view V] [--chunk N]
+    svorf info --scale paper [--preset clevr567] [--image-size N]
+
+Bad input (unknown preset or scale, a data folder that is not a split or does not fit
+the preset or scale, a corrupt checkpoint) prints one line ``svorf: error: ...`` and
+exits with status 2; a diverged training run exits with status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _parser() -> argparse.ArgumentParser:
+    from svorf.train import PRESETS, SCALES
+
+    p = argparse.ArgumentParser(prog="svorf", description="Train and inspect sVORF models.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    t = sub.add_parser("train", help="train a model on a generated split")
+    t.add_argument("--data", required=True, help="training split folder (e.g. data/clevr567/train)")
+    t.add_argument("--preset", required=True, choices=sorted(PRESETS),
+                   help="training preset (sets the slot count; must match the data)")
+    t.add_argument("--scale", required=True, choices=SCALES, help="model and schedule size")
+    t.add_argument("--out", required=True, help="run folder (checkpoint, logs)")
+    t.add_argument("--steps", type=int, help="total optimizer steps (default: the scale's)")
+    t.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
+    t.add_argument("--seed", type=int, help="random seed (default 0)")
+    t.add_argument("--eval-data", help="held-out split evaluated every eval_every steps")
+    t.add_argument("--image-size", type=int, help="training resolution (default: the scale's)")
+    t.add_argument("--device", help="auto (default), cpu, cuda or cuda:N")
+    t.add_argument("--max-scenes", type=int, help="use only the first N scenes")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    r = sub.add_parser("render", help="render one scene of a split with a trained run")
+    r.add_argument("run", help="run folder written by `svorf train`")
+    r.add_argument("--data", required=True, help="split folder holding the scene")
+    r.add_argument("--scene", type=int, required=True, help="scene number (sc%%04d)")
+    r.add_argument("--out", help="output folder (default RUN/render/scNNNN)")
+    r.add_argument("--input-view", type=int, default=0, help="view fed to the encoder")
+    r.add_argument("--chunk", type=int, default=4096, help="rays per rendering chunk")
+    r.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
+
+    i = sub.add_parser("info", help="print the parameter count of a scale")
+    i.add_argument("--scale", required=True, choices=SCALES)
+    i.add_argument("--preset", default="clevr567", choices=sorted(PRESETS))
+    i.add_argument("--image-size", type=int)
+    return p
+
+
+class _UsageError(Exception):
+    """A bad command-line input; printed as one line, exit status 2."""
+
+
+def _check_preset(preset: str, data: str) -> None:
+    from scenefmt import read_json
+    from svorf.train import PRESETS
+
+    manifest = Path(data) / "manifest.json"
+    if not manifest.is_file():
+        return  # the dataset reader reports the missing file with its fix
+    found = read_json(manifest).get("preset")
+    wanted = PRESETS[preset].data_presets
+    if found not in wanted:
+        raise _UsageError(
+            f"--preset {preset} trains on {'/'.join(wanted)} data, but {data} holds "
+            f"preset {found!r}"
+        )
+
+
+def _cmd_train(a: argparse.Namespace) -> int:
+    from svorf.model import SVORF
+    from svorf.train import run_configs, train
+
+    overrides = {k: v for k, v in (("steps", a.steps), ("seed", a.seed), ("device", a.device))
+                 if v is not None}  # fmt: skip
+    mcfg, tcfg = run_configs(a.scale, a.preset, image_size=a.image_size, **overrides)
+    _check_preset(a.preset, a.data)
+    n = SVORF(mcfg).count_parameters()
+    print(f"svorf train: scale {a.scale}, preset {a.preset}, K={mcfg.num_slots}, "
+          f"image {mcfg.image_size}, {n:,} parameters, {tcfg.steps} steps", flush=True)  # fmt: skip
+    summary = train(a.data, a.out, mcfg, tcfg, resume=a.resume, eval_data=a.eval_data,
+                    max_scenes=a.max_scenes, progress=not a.no_progress)  # fmt: skip
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _cmd_render(a: argparse.Namespace) -> int:
+    from svorf.data import MultiViewDataset
+    from svorf.train import load_run, predict_scene, resolve_device
+    from svorf.viz import save_scene_figures
+
+    device = resolve_device(a.device)
+    model, info = load_run(a.run, device=device)
+    if a.scene < 0:
+        raise _UsageError(f"--scene must be >= 0, got {a.scene}")
+    ds = MultiViewDataset(a.data, image_size=info.model.image_size, max_scenes=a.scene + 1)
+    if a.scene not in ds.scene_ids:
+        raise _UsageError(f"{a.data}: no scene sc{a.scene:04d}")
+    pos = ds.scene_ids.index(a.scene)
+    pred = predict_scene(model, ds, pos, input_view=a.input_view, chunk=a.chunk)
+    out = Path(a.out) if a.out else Path(a.run) / "render" / f"sc{a.scene:04d}"
+    paths = save_scene_figures(pred, ds, pos, out)
+    print(f"svorf render: wrote {len(paths)} PNGs to {out} (grid: {out / 'grid.png'})")
+    return 0
+
+
+def _cmd_info(a: argparse.Namespace) -> int:
+    from svorf.model import SVORF
+    from svorf.train import run_configs
+
+    mcfg, tcfg = run_configs(a.scale, a.preset, image_size=a.image_size)
+    n = SVORF(mcfg).count_parameters()
+    print(f"scale {a.scale}, preset {a.preset}: {n:,} parameters "
+          f"(K={mcfg.num_slots}, image {mcfg.image_size}, samples {mcfg.n_coarse}+{mcfg.n_fine}; "
+          f"train: {tcfg.steps} steps x {tcfg.batch_scenes} scenes x {tcfg.rays_per_scene} rays)")  # fmt: skip
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``svorf`` console script; returns the exit status."""
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as e:  # argparse: --help (0) or a usage error (2)
+        return int(e.code or 0)
+    from svorf.data import DatasetError
+    from svorf.train import CheckpointError, TrainingDiverged
+
+    cmd = {"train": _cmd_train, "render": _cmd_render, "info": _cmd_info}[args.command]
+    try:
+        return cmd(args)
+    except TrainingDiverged as e:
+        print(f"svorf: error: {e}", file=sys.stderr)
+        return 1
+    except (_UsageError, DatasetError, CheckpointError, ValueError, FileNotFoundError) as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        print(f"svorf: error: {msg}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("svorf: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

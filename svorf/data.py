@@ -1,0 +1,663 @@
+"""Multi-view scene dataset with cached rays, and the training ray sampler.
+
+Where this sits: ``dataset on disk -> svorf.data -> model``. :class:`MultiViewDataset`
+reads a generated split folder (the :mod:`scenefmt` contract) once into memory,
+optionally resized to the training resolution, and caches one ray per pixel per
+view. :class:`RaySampler` draws the training batches of the paper's setup (one input
+view per scene, ``R`` random rays from the scene's other views).
+
+Conventions (all tensors are float32 unless said otherwise):
+
+- cameras: ``cam_to_world`` [4, 4] with OpenCV axes (x right, y down, z forward),
+  z-up world, world units; ``K`` [3, 3] in pixels of the *loaded* resolution, with
+  pixel ``(u, v)`` covering ``[u, u+1) x [v, v+1)`` (its centre is ``(u+0.5, v+0.5)``);
+- rays: ``rays_o`` is the camera centre, ``rays_d`` the *unit* world direction
+  through the pixel centre; the distance ``t`` along it relates to the planar depth
+  by ``depth_z = t * z_scale`` where ``z_scale`` is the camera-z component of the unit
+  direction (``<= 1``, equal to 1 on the optical axis);
+- ``depth_z``: planar depth (camera z), world units, ``inf`` (or ``nan``) where no
+  surface was hit or the dataset has no depth;
+- ``instances``: int64, 0 = background, ``k`` = object ``k`` of the scene JSON.
+
+Resizing (``image_size``): images are area-averaged (``F.interpolate(mode="area")``,
+re-quantised to 8 bits),
+instance ids and depth take the source pixel under the new pixel's centre (nearest;
+averaging ids or depths across an edge would invent values), and ``K`` is rescaled
+as ``K' = diag(W'/W, H'/H, 1) @ K``. Because pixel edges lie on integer coordinates,
+scaling the continuous image plane maps pixel centres to pixel centres and needs no
+half-pixel shift. Only down-sampling is allowed.
+
+Memory: everything is held in memory (uint8 images and ids; float32 rays and depth),
+about ``V * H * W * 25`` bytes per scene: 0.4 MB for 4 views at 64x64, 1.6 MB at
+128x128.
+
+Glossary: B scenes, V views, H x W pixels, R rays per scene, K slots.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import Tensor
+
+from scenefmt import (
+    SplitLayout,
+    read_depth_exr,
+    read_instances,
+    read_json,
+    read_matrix_txt,
+    read_rgb,
+)
+
+__all__ = [
+    "DatasetError",
+    "MultiViewDataset",
+    "RAY_SAMPLING",
+    "RayBatch",
+    "RaySampler",
+    "SceneViews",
+    "UORF_FOV_DEG",
+    "dataset_fingerprint",
+    "pixel_rays",
+    "register_ray_sampling",
+    "resize_intrinsics",
+]
+
+#: Field of view (x, y) in degrees assumed for uORF-layout folders, which store no
+#: intrinsics: uORF's ``models/projection.py`` uses focal lengths of ``350/320 * W`` and
+#: ``350/240 * H`` pixels, i.e. ``2 * atan(0.5 / ratio)``.
+UORF_FOV_DEG = (
+    math.degrees(2.0 * math.atan(0.5 / (350.0 / 320.0))),
+    math.degrees(2.0 * math.atan(0.5 / (350.0 / 240.0))),
+)
+
+#: File-name endings the uORF loader excludes from its view-image glob, plus the
+#: auxiliary images seen in uORF-derived repositories (``_dist``, ``_depth``, ``_seg``).
+UORF_EXCLUDED_SUFFIXES = (
+    "_mask",
+    "_mask_for_moving",
+    "_moved",
+    "_mask_for_bg",
+    "_mask_for_providing_bg",
+    "_changed",
+    "_providing_bg",
+    "_dist",
+    "_depth",
+    "_seg",
+)
+
+# OpenGL camera axes (x right, y up, z backward) -> OpenCV: negate the y and z columns.
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+class DatasetError(ValueError):
+    """A split folder that cannot be read; the message is one line naming the fix."""
+
+
+# --------------------------------------------------------------------------- rays
+
+
+def pixel_rays(K: Tensor, cam_to_world: Tensor, height: int, width: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Rays through every pixel centre of a batch of views.
+
+    Computed in float64 and returned as float32.
+
+    Args:
+        K: [V, 3, 3] intrinsics in pixels (pixel centres at ``u + 0.5``).
+        cam_to_world: [V, 4, 4], OpenCV axes.
+        height, width: image size in pixels.
+
+    Returns:
+        ``(rays_o [V, 3], rays_d [V, H, W, 3] unit world directions,
+        z_scale [V, H, W] camera-z of the unit direction)``.
+    """
+    if K.ndim != 3 or K.shape[1:] != (3, 3):
+        raise ValueError(f"K must be [V, 3, 3], got {tuple(K.shape)}")
+    if cam_to_world.shape != (K.shape[0], 4, 4):
+        raise ValueError(f"cam_to_world must be [{K.shape[0]}, 4, 4], got {tuple(cam_to_world.shape)}")
+    K64, c2w = K.double(), cam_to_world.double()
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64) + 0.5,
+        torch.arange(width, dtype=torch.float64) + 0.5,
+        indexing="ij",
+    )
+    pix = torch.stack([u, v, torch.ones_like(u)], dim=-1)  # [H, W, 3]
+    d_cam = torch.einsum("vij,hwj->vhwi", torch.linalg.inv(K64), pix)
+    d_cam = d_cam / d_cam.norm(dim=-1, keepdim=True)
+    rays_d = torch.einsum("vij,vhwj->vhwi", c2w[:, :3, :3], d_cam)
+    rays_d = rays_d / rays_d.norm(dim=-1, keepdim=True)  # exact rotations keep it unit
+    return c2w[:, :3, 3].float(), rays_d.float(), d_cam[..., 2].float()
+
+
+def resize_intrinsics(K: Tensor, src_hw: tuple[int, int], dst_hw: tuple[int, int]) -> Tensor:
+    """``K`` [..., 3, 3] for images resized from ``src_hw`` to ``dst_hw`` (H, W).
+
+    With pixel edges on integer coordinates, resizing scales the image plane:
+    ``fx, cx *= W'/W`` and ``fy, cy *= H'/H`` (skew scales with x).
+    """
+    sx = dst_hw[1] / src_hw[1]
+    sy = dst_hw[0] / src_hw[0]
+    S = torch.tensor([[sx, 0.0, 0.0], [0.0, sy, 0.0], [0.0, 0.0, 1.0]], dtype=K.dtype)
+    return S @ K
+
+
+def _nearest_index(src: int, dst: int) -> Tensor:
+    """Source pixel under each destination pixel centre: ``floor((i + 0.5) * src / dst)``."""
+    idx = torch.floor((torch.arange(dst, dtype=torch.float64) + 0.5) * (src / dst)).long()
+    return idx.clamp_(0, src - 1)
+
+
+# --------------------------------------------------------------------------- dataset
+
+
+@dataclass(frozen=True)
+class SceneViews:
+    """All views of one scene, as returned by ``MultiViewDataset[i]``.
+
+    Attributes:
+        scene: the scene number in the split (``sc%04d`` of the file names).
+        images: [V, 3, H, W] float32 in [0, 1] (sRGB values as stored).
+        K: [V, 3, 3] intrinsics at this resolution.
+        cam_to_world: [V, 4, 4], OpenCV axes.
+        instances: [V, H, W] int64, 0 = background.
+        depth_z: [V, H, W] planar depth, world units, inf/nan = none.
+        rays_o: [V, H, W, 3] camera centres (an expanded view, no copy).
+        rays_d: [V, H, W, 3] unit world directions through pixel centres.
+        z_scale: [V, H, W] camera-z of ``rays_d``: ``depth_z = t * z_scale``.
+    """
+
+    scene: int
+    images: Tensor
+    K: Tensor
+    cam_to_world: Tensor
+    instances: Tensor
+    depth_z: Tensor
+    rays_o: Tensor
+    rays_d: Tensor
+    z_scale: Tensor
+
+
+def dataset_fingerprint(root: str | os.PathLike) -> str:
+    """SHA-256 over ``manifest.json`` and every ``sc*.json`` of a split (hex string).
+
+    The scene JSONs record every random draw and camera, so two folders with the same
+    fingerprint hold the same scenes (render noise aside). For uORF-layout folders
+    (no JSON) the hash runs over the sorted view-image names and ``_RT.txt`` contents.
+    """
+    root = Path(root)
+    h = hashlib.sha256()
+    files = [root / "manifest.json"] if (root / "manifest.json").is_file() else []
+    files += sorted(root.glob("sc[0-9][0-9][0-9][0-9].json"))
+    if not files:
+        files = sorted(root.glob("*_RT.txt"))
+    for p in files:
+        h.update(p.name.encode() + b"\0")
+        h.update(p.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def _as_hw(size: int | Sequence[int] | None) -> tuple[int, int] | None:
+    if size is None:
+        return None
+    if isinstance(size, int):
+        return (size, size)
+    size = tuple(int(s) for s in size)
+    if len(size) != 2:
+        raise ValueError(f"image_size must be an int or (H, W), got {size}")
+    return size  # type: ignore[return-value]
+
+
+class MultiViewDataset(torch.utils.data.Dataset):
+    """A generated split folder, in memory, with cached per-pixel rays.
+
+    Args:
+        root: the split folder (e.g. ``data/clevr567/train``).
+        image_size: training resolution, an int (square) or ``(H, W)``; ``None`` keeps
+            the stored resolution. Must not exceed it (only down-sampling).
+        max_scenes: load only the first ``max_scenes`` scenes (sorted by scene number).
+        uorf_layout: read a plain uORF-layout folder (PNG views, ``_RT.txt``, ``_mask.png``;
+            no manifest, JSON, depth or intrinsics) instead of our format.
+        uorf_fov_deg: field of view (x, y) or one value for both, in degrees, used to
+            build ``K`` for uORF-layout folders. Default: uORF's own projection.
+        uorf_axes: camera axes of the ``_RT.txt`` matrices of a uORF-layout folder.
+            ``"opencv"`` (default): uORF's ``models/projection.py`` maps pixel column,
+            pixel row and positive depth straight through ``cam2world``, i.e. x right,
+            y down, z forward; ``"opengl"`` (x right, y up, z backward, Blender's
+            ``matrix_world``) converts with ``@ diag(1, -1, -1, 1)``.
+
+    Raises:
+        DatasetError: a one-line message naming the missing/bad file and the fix.
+
+    Example:
+        >>> ds = MultiViewDataset("data/clevr567/train", image_size=64)
+        >>> sv = ds[0]; sv.images.shape
+        torch.Size([4, 3, 64, 64])
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        image_size: int | Sequence[int] | None = None,
+        max_scenes: int | None = None,
+        uorf_layout: bool = False,
+        *,
+        uorf_fov_deg: float | tuple[float, float] = UORF_FOV_DEG,
+        uorf_axes: str = "opencv",
+    ) -> None:
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise DatasetError(f"{self.root}: not a directory (expected a generated split folder)")
+        if max_scenes is not None and max_scenes < 1:
+            raise ValueError(f"max_scenes must be >= 1 or None, got {max_scenes}")
+        if uorf_axes not in ("opencv", "opengl"):
+            raise ValueError(f"uorf_axes must be 'opencv' or 'opengl', got {uorf_axes!r}")
+        self.uorf_layout = uorf_layout
+        self.manifest: dict = {}
+        if uorf_layout:
+            loaded = self._load_uorf(max_scenes, uorf_fov_deg, uorf_axes)
+        else:
+            loaded = self._load_ours(max_scenes)
+        scenes, rgb, ids, depth, K, c2w = loaded
+        self.scene_ids: list[int] = scenes
+        src_hw = (rgb.shape[2], rgb.shape[3])
+        dst_hw = _as_hw(image_size) or src_hw
+        if dst_hw[0] > src_hw[0] or dst_hw[1] > src_hw[1]:
+            raise DatasetError(
+                f"{self.root}: image_size {dst_hw} exceeds the stored resolution {src_hw}; "
+                f"only down-sampling is supported (regenerate with a larger --resolution)"
+            )
+        if dst_hw != src_hw:
+            rgb, ids, depth = self._resize(rgb, ids, depth, dst_hw)
+            K = resize_intrinsics(K, src_hw, dst_hw)
+        self.image_hw: tuple[int, int] = dst_hw
+        self.source_hw: tuple[int, int] = src_hw
+        self.n_views: int = rgb.shape[1]
+        self._rgb = rgb  # uint8 [N, V, H, W, 3]
+        self._ids = ids  # uint8 [N, V, H, W]
+        self._depth = depth  # float32 [N, V, H, W]
+        self._K = K.float()  # [N, V, 3, 3]
+        self._c2w = c2w.float()  # [N, V, 4, 4]
+        n = rgb.shape[0]
+        h, w = dst_hw
+        # Rays once per view (float64 maths, float32 storage).
+        rays = [pixel_rays(K[i], c2w[i], h, w) for i in range(n)]
+        self._rays_o = torch.stack([r[0] for r in rays])  # [N, V, 3]
+        self._rays_d = torch.stack([r[1] for r in rays])  # [N, V, H, W, 3]
+        self._z_scale = torch.stack([r[2] for r in rays])  # [N, V, H, W]
+        self._fingerprint: str | None = None
+
+    # ---------------------------------------------------------------- loading
+
+    def _missing(self, path: Path) -> DatasetError:
+        return DatasetError(
+            f"{path}: missing - {self.root} is not a complete split folder "
+            f"(run `generate verify {self.root}`)"
+        )
+
+    def _load_ours(self, max_scenes: int | None):
+        manifest_path = self.root / "manifest.json"
+        if not manifest_path.is_file():
+            raise self._missing(manifest_path)
+        try:
+            self.manifest = read_json(manifest_path)
+        except (OSError, ValueError) as e:
+            raise DatasetError(f"{manifest_path}: unreadable JSON ({e}); run `generate verify {self.root}`") from e
+        n_views = int(self.manifest.get("n_views", 4))
+        layout = SplitLayout(self.root, n_views=n_views)
+        scenes = layout.scene_indices()
+        if not scenes:
+            raise DatasetError(
+                f"{self.root}: no sc%04d.json scene files - not a generated split folder "
+                f"(run `generate verify {self.root}`)"
+            )
+        if "n_scenes" in self.manifest and len(scenes) < int(self.manifest["n_scenes"]):
+            expected = set(range(int(self.manifest["n_scenes"])))
+            first = min(expected - set(scenes), default=None)
+            if first is not None:
+                raise self._missing(layout.scene_json(first))
+        if max_scenes is not None:
+            scenes = scenes[:max_scenes]
+        rgb, ids, depth, Ks, c2ws = [], [], [], [], []
+        for s in scenes:
+            for p in layout.scene_files(s):
+                if not p.is_file():
+                    raise self._missing(p)
+            meta = read_json(layout.scene_json(s))
+            jpath = layout.scene_json(s)
+            conv = meta.get("camera_convention", "opencv")
+            if conv != "opencv":
+                raise DatasetError(f"{jpath}: camera_convention {conv!r} is not 'opencv'")
+            dconv = meta.get("depth", "planar_z")
+            if dconv != "planar_z":
+                raise DatasetError(f"{jpath}: depth convention {dconv!r} is not 'planar_z'")
+            views = meta.get("views")
+            if not isinstance(views, list) or len(views) != n_views:
+                got = len(views) if isinstance(views, list) else "no"
+                raise DatasetError(f"{jpath}: expected {n_views} entries in 'views', got {got}")
+            s_rgb, s_ids, s_depth, s_K, s_c2w = [], [], [], [], []
+            for view, vm in enumerate(views):
+                try:
+                    Kv = np.asarray(vm["K"], dtype=np.float64)
+                    Tv = np.asarray(vm["cam_to_world"], dtype=np.float64)
+                except (KeyError, TypeError, ValueError) as e:
+                    raise DatasetError(f"{jpath}: view {view} lacks a valid K / cam_to_world ({e})") from e
+                if Kv.shape != (3, 3) or Tv.shape != (4, 4):
+                    raise DatasetError(
+                        f"{jpath}: view {view} K must be 3x3 and cam_to_world 4x4, "
+                        f"got {Kv.shape} and {Tv.shape}"
+                    )
+                if "image" in vm and Path(vm["image"]).name != layout.rgb(s, view).name:
+                    raise DatasetError(
+                        f"{jpath}: view {view} image {vm['image']!r} does not match the "
+                        f"layout name {layout.rgb(s, view).name!r}"
+                    )
+                img = read_rgb(layout.rgb(s, view))
+                inst = read_instances(layout.instances(s, view))
+                dz = read_depth_exr(layout.depth(s, view))
+                if inst.shape != img.shape[:2] or dz.shape != img.shape[:2]:
+                    raise DatasetError(
+                        f"{layout.rgb(s, view)}: image {img.shape[:2]}, instances "
+                        f"{inst.shape} and depth {dz.shape} sizes differ "
+                        f"(run `generate verify {self.root}`)"
+                    )
+                s_rgb.append(img)
+                s_ids.append(inst)
+                s_depth.append(dz)
+                s_K.append(Kv)
+                s_c2w.append(Tv)
+            rgb.append(np.stack(s_rgb))
+            ids.append(np.stack(s_ids))
+            depth.append(np.stack(s_depth))
+            Ks.append(np.stack(s_K))
+            c2ws.append(np.stack(s_c2w))
+        shapes = {a.shape for a in rgb}
+        if len(shapes) != 1:
+            raise DatasetError(f"{self.root}: scenes have different image sizes {sorted(shapes)}")
+        return (
+            scenes,
+            torch.from_numpy(np.stack(rgb)),
+            torch.from_numpy(np.stack(ids)),
+            torch.from_numpy(np.stack(depth).astype(np.float32)),
+            torch.from_numpy(np.stack(Ks)),
+            torch.from_numpy(np.stack(c2ws)),
+        )
+
+    def _load_uorf(self, max_scenes: int | None, fov_deg, axes: str):
+        pngs = sorted(self.root.glob("*.png"))
+        views = [p for p in pngs if not p.stem.endswith(UORF_EXCLUDED_SUFFIXES)]
+        by_scene: dict[int, list[Path]] = {}
+        for p in views:
+            m = re.search(r"sc(\d{4})", p.name)
+            if m:
+                by_scene.setdefault(int(m.group(1)), []).append(p)
+        if not by_scene:
+            raise DatasetError(
+                f"{self.root}: no view images named *sc%04d*.png - not a uORF-layout folder"
+            )
+        scenes = sorted(by_scene)
+        if max_scenes is not None:
+            scenes = scenes[:max_scenes]
+        counts = {len(by_scene[s]) for s in scenes}
+        if len(counts) != 1:
+            raise DatasetError(f"{self.root}: scenes have different view counts {sorted(counts)}")
+        fx_deg, fy_deg = (fov_deg, fov_deg) if isinstance(fov_deg, (int, float)) else fov_deg
+        rgb, ids, depth, Ks, c2ws = [], [], [], [], []
+        for s in scenes:
+            files = sorted(by_scene[s])
+            s_rgb = [read_rgb(p) for p in files]
+            h, w = s_rgb[0].shape[:2]
+            fx = 0.5 * w / math.tan(math.radians(fx_deg) / 2.0)
+            fy = 0.5 * h / math.tan(math.radians(fy_deg) / 2.0)
+            Kv = np.array([[fx, 0.0, w / 2.0], [0.0, fy, h / 2.0], [0.0, 0.0, 1.0]])
+            s_c2w, s_depth, s_levels = [], [], []
+            for p in files:
+                rt = p.with_name(p.stem + "_RT.txt")
+                if not rt.is_file():
+                    raise DatasetError(f"{rt}: missing - every uORF view image needs its _RT.txt")
+                T = read_matrix_txt(rt)
+                if T.shape != (4, 4):
+                    raise DatasetError(f"{rt}: expected a 4x4 matrix, got shape {T.shape}")
+                s_c2w.append(T @ _GL_TO_CV if axes == "opengl" else T)
+                dpath = p.with_name(p.stem + "_depth.npy")
+                if dpath.is_file():  # assumed planar z (what our writer stores there)
+                    s_depth.append(np.load(dpath).reshape(h, w).astype(np.float32))
+                else:
+                    s_depth.append(np.full((h, w), np.nan, dtype=np.float32))
+                mpath = p.with_name(p.stem + "_mask.png")
+                if mpath.is_file():
+                    with Image.open(mpath) as im:
+                        s_levels.append(np.asarray(im.convert("L")))
+                else:
+                    s_levels.append(None)
+            rgb.append(np.stack(s_rgb))
+            ids.append(_uorf_ids(s_levels, h, w))
+            depth.append(np.stack(s_depth))
+            Ks.append(np.stack([Kv] * len(files)))
+            c2ws.append(np.stack(s_c2w))
+        shapes = {a.shape for a in rgb}
+        if len(shapes) != 1:
+            raise DatasetError(f"{self.root}: scenes have different image sizes {sorted(shapes)}")
+        return (
+            scenes,
+            torch.from_numpy(np.stack(rgb)),
+            torch.from_numpy(np.stack(ids)),
+            torch.from_numpy(np.stack(depth)),
+            torch.from_numpy(np.stack(Ks)),
+            torch.from_numpy(np.stack(c2ws)),
+        )
+
+    @staticmethod
+    def _resize(rgb: Tensor, ids: Tensor, depth: Tensor, hw: tuple[int, int]):
+        n, v, h, w, _ = rgb.shape
+        x = rgb.reshape(n * v, h, w, 3).permute(0, 3, 1, 2).float()
+        x = F.interpolate(x, size=hw, mode="area")
+        rgb = x.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).reshape(n, v, *hw, 3)
+        iy, ix = _nearest_index(h, hw[0]), _nearest_index(w, hw[1])
+        ids = ids[:, :, iy][:, :, :, ix].contiguous()
+        depth = depth[:, :, iy][:, :, :, ix].contiguous()
+        return rgb, ids, depth
+
+    # ---------------------------------------------------------------- access
+
+    def __len__(self) -> int:
+        return self._rgb.shape[0]
+
+    def __getitem__(self, i: int) -> SceneViews:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"scene position {i} out of range for {len(self)} scenes")
+        v, (h, w) = self.n_views, self.image_hw
+        return SceneViews(
+            scene=self.scene_ids[i],
+            images=self.images(i),
+            K=self._K[i],
+            cam_to_world=self._c2w[i],
+            instances=self._ids[i].long(),
+            depth_z=self._depth[i],
+            rays_o=self._rays_o[i][:, None, None, :].expand(v, h, w, 3),
+            rays_d=self._rays_d[i],
+            z_scale=self._z_scale[i],
+        )
+
+    def images(self, i: int, views: Tensor | Sequence[int] | None = None) -> Tensor:
+        """[V, 3, H, W] float32 in [0, 1] of scene position ``i`` (optionally some views)."""
+        x = self._rgb[i] if views is None else self._rgb[i][torch.as_tensor(views)]
+        return x.permute(0, 3, 1, 2).float().div_(255.0)
+
+    @property
+    def fingerprint(self) -> str:
+        """:func:`dataset_fingerprint` of the folder (computed once)."""
+        if self._fingerprint is None:
+            self._fingerprint = dataset_fingerprint(self.root)
+        return self._fingerprint
+
+    @property
+    def preset(self) -> str | None:
+        """The manifest's preset (``None`` for uORF-layout folders)."""
+        return self.manifest.get("preset")
+
+
+def _uorf_ids(levels: list[np.ndarray | None], h: int, w: int) -> np.ndarray:
+    """Instance ids [V, H, W] from uORF grey masks with the uORF background rule.
+
+    Per view the background is the *second-lowest* grey level (uORF's loader); every
+    other level is an object. Ids 1..n follow the sorted union of object levels over
+    the scene's views, so one object keeps its id across views. Views without a mask
+    read as all background.
+    """
+    out = np.zeros((len(levels), h, w), dtype=np.uint8)
+    bgs, fg_levels = [], set()
+    for m in levels:
+        if m is None:
+            bgs.append(None)
+            continue
+        uniq = np.unique(m)
+        bg = uniq[1] if len(uniq) > 1 else uniq[0]
+        bgs.append(bg)
+        fg_levels.update(int(u) for u in uniq if u != bg)
+    lut = {lv: k + 1 for k, lv in enumerate(sorted(fg_levels))}
+    if len(lut) > 255:
+        raise DatasetError("uORF masks have more than 255 object grey levels")
+    for j, (m, bg) in enumerate(zip(levels, bgs)):
+        if m is None:
+            continue
+        table = np.zeros(256, dtype=np.uint8)
+        for lv, k in lut.items():
+            table[lv] = k
+        table[bg] = 0
+        out[j] = table[m]
+    return out
+
+
+# --------------------------------------------------------------------------- ray sampling
+
+#: A ray-sampling strategy: ``fn(target_rgb, n, generator) -> flat indices``.
+#: ``target_rgb`` is uint8 [Vt, H, W, 3] (the scene's candidate target views); the
+#: result is int64 [n] indices into ``Vt * H * W``. Strategies must draw all their
+#: randomness from ``generator`` (determinism and exact resume).
+RaySamplingFn = Callable[[Tensor, int, torch.Generator], Tensor]
+
+
+def _uniform_rays(target_rgb: Tensor, n: int, generator: torch.Generator) -> Tensor:
+    """The paper's sampling: ``n`` pixels uniformly (with replacement) over all target views."""
+    total = target_rgb.shape[0] * target_rgb.shape[1] * target_rgb.shape[2]
+    return torch.randint(0, total, (n,), generator=generator)
+
+
+#: Registry of ray-sampling strategies by name (``TrainConfig.ray_sampling``).
+RAY_SAMPLING: dict[str, RaySamplingFn] = {"uniform": _uniform_rays}
+
+
+def register_ray_sampling(name: str, fn: RaySamplingFn) -> None:
+    """Add a strategy to :data:`RAY_SAMPLING` (e.g. object-heavy or error-driven)."""
+    if name in RAY_SAMPLING:
+        raise ValueError(f"ray sampling strategy {name!r} is already registered")
+    RAY_SAMPLING[name] = fn
+
+
+@dataclass(frozen=True)
+class RayBatch:
+    """One training batch: an input view per scene and target rays.
+
+    Attributes:
+        scenes: [B] int64 dataset positions.
+        input_view: [B] int64 view index of each input image.
+        images: [B, 3, H, W] float32 in [0, 1], the input views.
+        rays_o: [B, R, 3] ray origins (world).
+        rays_d: [B, R, 3] unit ray directions (world).
+        target_rgb: [B, R, 3] float32 in [0, 1].
+        target_view: [B, R] int64 view index of each ray.
+        target_pixel: [B, R] int64 flat pixel index ``v * W + u`` of each ray.
+    """
+
+    scenes: Tensor
+    input_view: Tensor
+    images: Tensor
+    rays_o: Tensor
+    rays_d: Tensor
+    target_rgb: Tensor
+    target_view: Tensor
+    target_pixel: Tensor
+
+    def to(self, device: torch.device | str) -> RayBatch:
+        return RayBatch(**{k: getattr(self, k).to(device) for k in self.__dataclass_fields__})
+
+
+class RaySampler:
+    """Draws training batches: one input view and ``R`` target rays per scene.
+
+    With ``nvs=True`` (the paper's novel-view setup) the input view is uniform over the
+    scene's views and the rays come from the *other* views; with ``nvs=False`` the rays
+    come from the input view itself. Which pixels is decided by the strategy
+    ``ray_sampling`` (a name in :data:`RAY_SAMPLING`; ``"uniform"`` = the paper).
+
+    Args:
+        dataset: the in-memory dataset.
+        rays_per_scene: R (paper: 64).
+        nvs: novel-view setup (``ModelConfig.nvs``).
+        ray_sampling: strategy name.
+    """
+
+    def __init__(
+        self,
+        dataset: MultiViewDataset,
+        rays_per_scene: int = 64,
+        *,
+        nvs: bool = True,
+        ray_sampling: str = "uniform",
+    ) -> None:
+        if rays_per_scene < 1:
+            raise ValueError(f"rays_per_scene must be >= 1, got {rays_per_scene}")
+        if ray_sampling not in RAY_SAMPLING:
+            raise ValueError(
+                f"unknown ray_sampling {ray_sampling!r}; choose from {sorted(RAY_SAMPLING)}"
+            )
+        if nvs and dataset.n_views < 2:
+            raise ValueError(
+                f"nvs=True needs >= 2 views per scene, the dataset has {dataset.n_views}"
+            )
+        self.dataset = dataset
+        self.rays_per_scene = rays_per_scene
+        self.nvs = nvs
+        self.ray_sampling = ray_sampling
+        self._fn = RAY_SAMPLING[ray_sampling]
+
+    def sample_scenes(self, batch_scenes: int, generator: torch.Generator) -> Tensor:
+        """[B] distinct scene positions (with replacement only if B > len(dataset))."""
+        n = len(self.dataset)
+        if batch_scenes <= n:
+            return torch.randperm(n, generator=generator)[:batch_scenes]
+        return torch.randint(0, n, (batch_scenes,), generator=generator)
+
+    def sample(self, scenes: Tensor | Sequence[int], generator: torch.Generator) -> RayBatch:
+        """Build the batch for the given scene positions (CPU tensors)."""
+        ds = self.dataset
+        scenes = torch.as_tensor(scenes, dtype=torch.long).reshape(-1)
+        v_all, (h, w) = ds.n_views, ds.image_hw
+        r = self.rays_per_scene
+        inputs = torch.randint(0, v_all, (len(scenes),), generator=generator)
+        out = {k: [] for k in ("images", "rays_o", "rays_d", "target_rgb", "target_view", "target_pixel")}
+        for s, iv in zip(scenes.tolist(), inputs.tolist()):
+            if self.nvs:
+                views = torch.tensor([v for v in range(v_all) if v != iv])
+            else:
+                views = torch.tensor([iv])
+            flat = self._fn(ds._rgb[s][views], r, generator)
+            vsel = views[flat // (h * w)]
+            pix = flat % (h * w)
+            out["images"].append(ds.images(s, [iv])[0])
+            out["rays_o"].append(ds._rays_o[s][vsel])
+            out["rays_d"].append(ds._rays_d[s].reshape(v_all, h * w, 3)[vsel, pix])
+            out["target_rgb"].append(ds._rgb[s].reshape(v_all, h * w, 3)[vsel, pix].float() / 255.0)
+            out["target_view"].append(vsel)
+            out["target_pixel"].append(pix)
+        return RayBatch(scenes=scenes, input_view=inputs, **{k: torch.stack(x) for k, x in out.items()})

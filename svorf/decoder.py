@@ -1,0 +1,199 @@
+"""Slot decoder T(Z, E(I)) -> S (paper 3.2, appendix "Transformer-based module").
+
+Where it sits: between the image encoder (``svorf.encoder``) and the object fields
+(``svorf.field``): ``SVORF.encode`` = encoder + one of the modules here.
+
+Both modules take the feature map [B, C, h, w] and return slots [B, K, D]; the last slot is
+the background. Initial slots (both modules) = Linear(avg_pool(E(I))) + K learned positional
+encodings (paper: "global image feature ... as initial object slots ... combining with K
+learned positional encodings"); the learned per-slot encodings also break the symmetry
+between slots and give the background slot its identity.
+
+Choices where the paper is silent (documented, config fields where they are sizes):
+- pre-norm layers (LayerNorm before each sub-layer, final LayerNorm): trains from scratch
+  without warm-up tricks; the paper's warm-up is kept by the training code anyway.
+- the flattened features get a LayerNorm and a fixed 2D sine positional encoding (DETR style)
+  added to the keys only, so cross-attention can bind slots to image locations.
+- Slot Attention (ablation) keeps the same deterministic initialisation instead of
+  Gaussian sampling, since the background slot must stay the last one.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .config import ModelConfig
+
+
+def sine_pos_2d(h: int, w: int, dim: int, device=None, dtype=None) -> Tensor:
+    """Fixed 2D sine positional encoding (DETR), [h*w, dim], row-major over (y, x).
+
+    dim/4 frequencies each for sin(y), cos(y), sin(x), cos(x); zero padded to ``dim``.
+    """
+    nf = max(dim // 4, 1)
+    freqs = 1.0 / (10000.0 ** (torch.arange(nf, device=device, dtype=torch.float32) / nf))
+    # Positions in pixels of the feature map; frequencies 1 ... 1e-4 rad/pixel (Vaswani).
+    ys = torch.arange(h, device=device, dtype=torch.float32)
+    xs = torch.arange(w, device=device, dtype=torch.float32)
+    py = ys[:, None] * freqs[None]  # [h, nf]
+    px = xs[:, None] * freqs[None]  # [w, nf]
+    py = torch.cat([py.sin(), py.cos()], -1)[:, None, :].expand(h, w, 2 * nf)
+    px = torch.cat([px.sin(), px.cos()], -1)[None, :, :].expand(h, w, 2 * nf)
+    pos = torch.cat([py, px], -1).reshape(h * w, 4 * nf)[:, :dim]
+    if pos.shape[-1] < dim:
+        pos = F.pad(pos, (0, dim - pos.shape[-1]))
+    return pos.to(dtype or torch.float32)
+
+
+class MultiHeadAttention(nn.Module):
+    """Multi-head attention with separate query / key / value widths.
+
+    Shapes: q [B, Lq, Dq], k [B, Lk, Dk], v [B, Lk, Dv] -> [B, Lq, dim].
+    ``key_mask`` [B, Lk] bool, True = attend (optional).
+    """
+
+    def __init__(self, dim: int, heads: int, q_dim: int, k_dim: int, v_dim: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.q = nn.Linear(q_dim, dim)
+        self.k = nn.Linear(k_dim, dim)
+        self.v = nn.Linear(v_dim, dim)
+        self.o = nn.Linear(dim, dim)
+        for lin in (self.q, self.k, self.v, self.o):
+            nn.init.xavier_uniform_(lin.weight)
+            nn.init.zeros_(lin.bias)
+
+    def forward(self, q: Tensor, k: Tensor, v: Tensor, key_mask: Tensor | None = None) -> Tensor:
+        B, Lq, _ = q.shape
+        Lk = k.shape[1]
+        H = self.heads
+        qh = self.q(q).view(B, Lq, H, -1).transpose(1, 2)
+        kh = self.k(k).view(B, Lk, H, -1).transpose(1, 2)
+        vh = self.v(v).view(B, Lk, H, -1).transpose(1, 2)
+        mask = None if key_mask is None else key_mask[:, None, None, :]
+        out = F.scaled_dot_product_attention(qh, kh, vh, attn_mask=mask)
+        return self.o(out.transpose(1, 2).reshape(B, Lq, -1))
+
+
+class DecoderLayer(nn.Module):
+    """Pre-norm transformer decoder layer: [self-attn], cross-attn to features, FFN.
+
+    slots [B, K, D], memory [B, T, C], memory_pos [1 or B, T, C] -> slots [B, K, D].
+    """
+
+    def __init__(self, dim: int, heads: int, ffn: int, mem_dim: int, self_attention: bool) -> None:
+        super().__init__()
+        self.self_attention = self_attention
+        if self_attention:
+            self.norm_sa = nn.LayerNorm(dim)
+            self.sa = MultiHeadAttention(dim, heads, dim, dim, dim)
+        self.norm_ca = nn.LayerNorm(dim)
+        self.ca = MultiHeadAttention(dim, heads, dim, mem_dim, mem_dim)
+        self.norm_ff = nn.LayerNorm(dim)
+        self.ff = nn.Sequential(nn.Linear(dim, ffn), nn.ReLU(inplace=True), nn.Linear(ffn, dim))
+
+    def forward(self, x: Tensor, memory: Tensor, memory_pos: Tensor) -> Tensor:
+        if self.self_attention:
+            h = self.norm_sa(x)
+            x = x + self.sa(h, h, h)
+        x = x + self.ca(self.norm_ca(x), memory + memory_pos, memory)
+        return x + self.ff(self.norm_ff(x))
+
+
+class _SlotInit(nn.Module):
+    """Initial slots Z: Linear(avg_pool(features)) + K learned positional encodings."""
+
+    def __init__(self, feat_dim: int, dim: int, num_slots: int) -> None:
+        super().__init__()
+        self.proj = nn.Linear(feat_dim, dim)
+        self.pos = nn.Parameter(torch.randn(num_slots, dim))  # N(0, 1) as nn.Embedding
+
+    def forward(self, features: Tensor) -> Tensor:
+        pooled = features.mean(dim=(2, 3))  # [B, C]
+        return self.proj(pooled)[:, None, :] + self.pos[None]  # [B, K, D]
+
+
+def _flatten_features(features: Tensor, norm: nn.LayerNorm) -> tuple[Tensor, Tensor]:
+    """[B, C, h, w] -> (normalised tokens [B, h*w, C], sine positions [1, h*w, C])."""
+    _, C, h, w = features.shape
+    tokens = norm(features.flatten(2).transpose(1, 2))
+    pos = sine_pos_2d(h, w, C, device=features.device, dtype=tokens.dtype)[None]
+    return tokens, pos
+
+
+class SlotTransformerDecoder(nn.Module):
+    """sVORF's transformer module: initial slots -> ``dec_layers`` decoder layers -> LayerNorm.
+
+    forward(features [B, C, h, w]) -> slots [B, K, D]. With ``self_attention=False`` each
+    slot is computed from its own initial value and the image only (ablation "w/o SA").
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        D = cfg.slot_dim
+        self.init = _SlotInit(cfg.feat_dim, D, cfg.num_slots)
+        self.mem_norm = nn.LayerNorm(cfg.feat_dim)
+        self.layers = nn.ModuleList(
+            DecoderLayer(D, cfg.dec_heads, cfg.dec_ffn, cfg.feat_dim, cfg.self_attention)
+            for _ in range(cfg.dec_layers)
+        )
+        self.out_norm = nn.LayerNorm(D)
+
+    def forward(self, features: Tensor) -> Tensor:
+        memory, pos = _flatten_features(features, self.mem_norm)
+        x = self.init(features)
+        for layer in self.layers:
+            x = layer(x, memory, pos)
+        return self.out_norm(x)
+
+
+class SlotAttention(nn.Module):
+    """Slot Attention (Locatello et al. 2020) for the "w Slot-Attention" ablation.
+
+    Softmax over slots, weighted mean over tokens, GRU update, residual MLP; ``iters``
+    iterations (3). forward(features [B, C, h, w]) -> slots [B, K, D].
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        D, C = cfg.slot_dim, cfg.feat_dim
+        self.iters = cfg.slot_attn_iters
+        self.init = _SlotInit(C, D, cfg.num_slots)
+        self.mem_norm = nn.LayerNorm(C)
+        self.norm_slots = nn.LayerNorm(D)
+        self.q = nn.Linear(D, D, bias=False)
+        self.k = nn.Linear(C, D, bias=False)
+        self.v = nn.Linear(C, D, bias=False)
+        self.gru = nn.GRUCell(D, D)
+        self.norm_mlp = nn.LayerNorm(D)
+        self.mlp = nn.Sequential(
+            nn.Linear(D, cfg.dec_ffn), nn.ReLU(inplace=True), nn.Linear(cfg.dec_ffn, D)
+        )
+        self.out_norm = nn.LayerNorm(D)
+        self.scale = D**-0.5
+
+    def forward(self, features: Tensor) -> Tensor:
+        memory, pos = _flatten_features(features, self.mem_norm)
+        k = self.k(memory + pos)  # [B, T, D]
+        v = self.v(memory)
+        slots = self.init(features)
+        B, K, D = slots.shape
+        for _ in range(self.iters):
+            prev = slots
+            q = self.q(self.norm_slots(slots))
+            attn = torch.softmax(torch.einsum("btd,bkd->btk", k, q) * self.scale, dim=-1)
+            attn = attn + 1e-8
+            attn = attn / attn.sum(dim=1, keepdim=True)  # weighted mean over tokens
+            updates = torch.einsum("btk,btd->bkd", attn, v)
+            slots = self.gru(updates.reshape(B * K, D), prev.reshape(B * K, D)).view(B, K, D)
+            slots = slots + self.mlp(self.norm_mlp(slots))
+        return self.out_norm(slots)
+
+
+def build_slot_module(cfg: ModelConfig) -> nn.Module:
+    """The slot module named by ``cfg.slot_module``."""
+    if cfg.slot_module == "transformer":
+        return SlotTransformerDecoder(cfg)
+    return SlotAttention(cfg)

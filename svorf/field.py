@@ -1,0 +1,347 @@
+"""Object radiance fields: positional encoding, hypernetwork, and the uORF-like ablation MLP.
+
+Where it sits: ``SVORF.render_rays`` turns slots [B, K, D] into per-slot field parameters
+once per call (:meth:`ObjectFields.params`), then evaluates every sample point of every ray
+for all slots of all scenes at once (:meth:`ObjectFields.eval_fields`); ``svorf.compose``
+combines the K outputs.
+
+Object MLP (paper appendix A, "Object NeRF"): ``mlp_depth`` (4) layers of ``mlp_width`` (128)
+channels. Layers 1..depth-1 take gamma(x) and are Linear+ReLU; the first layer's activation
+is added to the activation of layer ``mlp_skip`` (3); the density is a linear head on the
+last hidden activation (view-independent, as in NeRF); the last layer takes
+[hidden, gamma(d)] and outputs RGB through a sigmoid. Density activation: softplus (or relu),
+clamped to ``sigma_max``.
+
+Glossary: B scenes, K slots, Kx = 1 (points shared by all slots) or K (per-slot points,
+e.g. after an object transform), P points per scene (= R rays x N samples), D slot width,
+W mlp width, Cx / Cd widths of gamma(x) / gamma(d).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .config import ModelConfig
+
+
+def encoding_dim(n_freqs: int, include_input: bool = True, dims: int = 3) -> int:
+    """Width of :func:`positional_encoding` for ``dims``-vectors."""
+    return dims * (2 * n_freqs + int(include_input))
+
+
+def positional_encoding(x: Tensor, n_freqs: int, include_input: bool = True) -> Tensor:
+    """gamma(x) = [x, sin(2^l pi x), cos(2^l pi x)]_{l < n_freqs}.
+
+    Args:
+        x: [..., 3], expected roughly in [-1, 1] (positions are divided by ``box_half``).
+    Returns:
+        [..., encoding_dim(n_freqs, include_input)] in x's dtype.
+    """
+    parts = [x] if include_input else []
+    if n_freqs > 0:
+        freqs = math.pi * 2.0 ** torch.arange(n_freqs, device=x.device, dtype=x.dtype)
+        xb = (x[..., None, :] * freqs[:, None]).flatten(-2)  # [..., L*3]
+        parts += [torch.sin(xb), torch.cos(xb)]
+    return torch.cat(parts, dim=-1)
+
+
+@dataclass
+class FieldParams:
+    """Per-slot MLP parameters produced by the hypernetwork.
+
+    hidden: [(weight [B, K, in, W], bias [B, K, W])] for the depth-1 hidden layers
+        (in = Cx for the first, W after).
+    head_w: [B, K, W, 4] (column 0 -> density, 1..3 -> rgb from the hidden activation).
+    head_d: [B, K, Cd, 3] (rgb from gamma(d)).
+    head_b: [B, K, 4].
+    """
+
+    hidden: list[tuple[Tensor, Tensor]]
+    head_w: Tensor
+    head_d: Tensor
+    head_b: Tensor
+
+    def select(self, index: slice) -> FieldParams:
+        """Parameters of a subset of slots (``index`` on the K axis)."""
+        return FieldParams(
+            [(w[:, index], b[:, index]) for w, b in self.hidden],
+            self.head_w[:, index],
+            self.head_d[:, index],
+            self.head_b[:, index],
+        )
+
+    @property
+    def num_slots(self) -> int:
+        return self.head_b.shape[1]
+
+
+@dataclass
+class CondParams:
+    """Slot conditioning of the shared uORF-like MLP: slot_term [B, K, W]."""
+
+    slot_term: Tensor
+
+    def select(self, index: slice) -> CondParams:
+        return CondParams(self.slot_term[:, index])
+
+    @property
+    def num_slots(self) -> int:
+        return self.slot_term.shape[1]
+
+
+class ObjectFields(nn.Module):
+    """Common interface of :class:`HyperNetwork` and :class:`SlotConditionedMLP`."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.width = cfg.mlp_width
+        self.n_hidden = cfg.mlp_depth - 1
+        self.skip = cfg.mlp_skip  # 1-based hidden layer index receiving the skip, 0 = none
+        self.in_x = encoding_dim(cfg.pos_freqs_xyz, cfg.pos_include_input)
+        self.in_d = encoding_dim(cfg.pos_freqs_dir, cfg.pos_include_input)
+        self.density_act = cfg.density_act
+        self.sigma_max = cfg.sigma_max
+
+    def density(self, raw: Tensor) -> Tensor:
+        """Raw density -> sigma in [0, sigma_max] (1/world unit)."""
+        sigma = F.softplus(raw) if self.density_act == "softplus" else F.relu(raw)
+        return sigma.clamp(max=self.sigma_max)
+
+    def params(self, slots: Tensor):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def eval_fields(self, p, gx: Tensor, gd: Tensor) -> tuple[Tensor, Tensor]:
+        """All slots' fields at all points.
+
+        Args:
+            p: output of :meth:`params` for slots [B, K, D].
+            gx: gamma(x) [B, Kx, P, Cx]; gd: gamma(d) [B, Kx, P, Cd]; Kx in {1, K}.
+        Returns:
+            sigma [B, K, P] (>= 0), rgb [B, K, P, 3] in (0, 1).
+        """
+        raise NotImplementedError  # pragma: no cover
+
+    def eval_mixed(self, p, a: Tensor, gx: Tensor, gd: Tensor) -> tuple[Tensor, Tensor]:
+        """One field per point whose parameters are the a-weighted mix over slots (Slot Mixer).
+
+        Args:
+            a: mixing weights [B, P, K] (rows sum to 1); gx [B, P, Cx]; gd [B, P, Cd].
+        Returns:
+            sigma [B, P], rgb [B, P, 3].
+        """
+        raise NotImplementedError  # pragma: no cover
+
+    def eval_reference(self, p, gx: Tensor, gd: Tensor) -> tuple[Tensor, Tensor]:
+        """Slow per-scene, per-slot loop computing the same as :meth:`eval_fields` (tests)."""
+        raise NotImplementedError  # pragma: no cover
+
+
+class HyperNetwork(ObjectFields):
+    """H: slot s_i -> parameters phi_i of object MLP Phi_{phi_i} (paper eq. phi_i = H(s_i)).
+
+    H = LayerNorm -> [Linear(D, hyper_hidden) -> ReLU] -> Linear(., n_params). Init: the
+    output bias holds a He-initialised "base" MLP and the slot-dependent part has the same
+    variance, so every generated MLP starts He-scaled (each part carries half the variance).
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__(cfg)
+        D, W = cfg.slot_dim, cfg.mlp_width
+        self.norm = nn.LayerNorm(D)
+        if cfg.hyper_hidden > 0:
+            self.trunk: nn.Module = nn.Sequential(nn.Linear(D, cfg.hyper_hidden), nn.ReLU())
+            h_in = cfg.hyper_hidden
+        else:
+            self.trunk = nn.Identity()
+            h_in = D
+        # (name, shape, fan_in, kind) of every generated tensor, in the output's order.
+        layout: list[tuple[str, tuple[int, ...], int, str]] = []
+        for i in range(self.n_hidden):
+            fin = self.in_x if i == 0 else W
+            layout += [(f"w{i}", (fin, W), fin, "relu_w"), (f"b{i}", (W,), fin, "bias")]
+        layout += [
+            ("head_w", (W, 4), W, "lin_w"),
+            ("head_d", (self.in_d, 3), W + self.in_d, "lin_w"),
+            ("head_b", (4,), W, "bias"),
+        ]
+        self.layout = layout
+        self.n_params = sum(math.prod(s) for _, s, _, _ in layout)
+        self.head = nn.Linear(h_in, self.n_params)
+        self._init(h_in)
+
+    @torch.no_grad()
+    def _init(self, h_in: int) -> None:
+        if isinstance(self.trunk, nn.Sequential):
+            nn.init.kaiming_normal_(self.trunk[0].weight, nonlinearity="relu")
+            nn.init.zeros_(self.trunk[0].bias)
+        # Trunk output is LayerNorm'd (unit variance) or ReLU'd He (about unit 2nd moment).
+        start = 0
+        for _, shape, fan_in, kind in self.layout:
+            n = math.prod(shape)
+            sl = slice(start, start + n)
+            start += n
+            if kind == "bias":
+                self.head.weight[sl].normal_(0.0, 0.02 / math.sqrt(h_in))
+                self.head.bias[sl].zero_()
+                continue
+            gain = 2.0 if kind == "relu_w" else 1.0
+            std = math.sqrt(gain / fan_in * 0.5)
+            self.head.weight[sl].normal_(0.0, std / math.sqrt(h_in))
+            self.head.bias[sl].normal_(0.0, std)
+
+    def params(self, slots: Tensor) -> FieldParams:
+        """slots [B, K, D] -> :class:`FieldParams` (one MLP per slot)."""
+        B, K, _ = slots.shape
+        flat = self.head(self.trunk(self.norm(slots)))  # [B, K, n_params]
+        out: dict[str, Tensor] = {}
+        start = 0
+        for name, shape, _, _ in self.layout:
+            n = math.prod(shape)
+            out[name] = flat[..., start : start + n].reshape(B, K, *shape)
+            start += n
+        hidden = [(out[f"w{i}"], out[f"b{i}"]) for i in range(self.n_hidden)]
+        return FieldParams(hidden, out["head_w"], out["head_d"], out["head_b"])
+
+    def eval_fields(self, p: FieldParams, gx: Tensor, gd: Tensor) -> tuple[Tensor, Tensor]:
+        B, K = p.head_b.shape[:2]
+        Kx, P = gx.shape[1], gx.shape[2]
+        BK, W = B * K, self.width
+        # [B*K, P, C] layout: one baddbmm per layer for all slots of all scenes (bias fused).
+        x = gx.expand(B, K, P, gx.shape[-1]).reshape(BK, P, -1)
+        h1 = h = None
+        for i, (w, b) in enumerate(p.hidden):
+            inp = x if i == 0 else h
+            h = torch.baddbmm(b.reshape(BK, 1, W), inp, w.reshape(BK, -1, W)).relu_()
+            if i == 0:
+                h1 = h
+            elif i + 1 == self.skip:
+                h = h + h1
+        out = torch.baddbmm(p.head_b.reshape(BK, 1, 4), h, p.head_w.reshape(BK, W, 4))
+        out = out.view(B, K, P, 4)
+        if Kx == 1:  # gamma(d) shared by all slots: one bmm per scene
+            d_term = torch.einsum("bpc,bkco->bkpo", gd[:, 0], p.head_d)
+        else:
+            d_term = torch.matmul(gd, p.head_d)  # [B, K, P, 3]
+        sigma = self.density(out[..., 0])
+        rgb = torch.sigmoid(out[..., 1:] + d_term)
+        return sigma, rgb
+
+    def eval_mixed(
+        self, p: FieldParams, a: Tensor, gx: Tensor, gd: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        # sum_k a_k (h W_k + b_k) = [a_1 h, ..., a_K h] @ [W_1; ...; W_K] + a @ [b_1; ...; b_K]
+        B, P, _ = a.shape
+
+        def mixed_linear(h: Tensor, w: Tensor, b: Tensor | None) -> Tensor:
+            xk = (a[..., None] * h[:, :, None, :]).reshape(B, P, -1)  # [B, P, K*in]
+            wk = w.reshape(B, -1, w.shape[-1])  # [B, K*in, out]
+            if b is None:
+                return torch.bmm(xk, wk)
+            return torch.baddbmm(torch.bmm(a, b), xk, wk)
+
+        h1 = h = None
+        for i, (w, b) in enumerate(p.hidden):
+            h = F.relu(mixed_linear(gx if i == 0 else h, w, b))
+            if i == 0:
+                h1 = h
+            elif i + 1 == self.skip:
+                h = h + h1
+        out = mixed_linear(h, p.head_w, p.head_b)
+        sigma = self.density(out[..., 0])
+        rgb = torch.sigmoid(out[..., 1:] + mixed_linear(gd, p.head_d, None))
+        return sigma, rgb
+
+    def eval_reference(self, p: FieldParams, gx: Tensor, gd: Tensor) -> tuple[Tensor, Tensor]:
+        B, K = p.head_b.shape[:2]
+        sig = torch.zeros(B, K, gx.shape[2], dtype=gx.dtype, device=gx.device)
+        rgb = torch.zeros(B, K, gx.shape[2], 3, dtype=gx.dtype, device=gx.device)
+        for b in range(B):
+            for k in range(K):
+                x = gx[b, min(k, gx.shape[1] - 1)]
+                d = gd[b, min(k, gd.shape[1] - 1)]
+                h1 = h = None
+                for i, (w, bias) in enumerate(p.hidden):
+                    h = torch.relu((x if i == 0 else h) @ w[b, k] + bias[b, k])
+                    if i == 0:
+                        h1 = h
+                    elif i + 1 == self.skip:
+                        h = h + h1
+                out = h @ p.head_w[b, k] + p.head_b[b, k]
+                sig[b, k] = self.density(out[:, 0])
+                rgb[b, k] = torch.sigmoid(out[:, 1:] + d @ p.head_d[b, k])
+        return sig, rgb
+
+
+class SlotConditionedMLP(ObjectFields):
+    """Ablation "w/o Hypernetwork": one shared MLP over [gamma(x), gamma(d), slot] (uORF-like).
+
+    The slot enters the first layer (h1 = ReLU(A gamma(x) + S slot + b)); gamma(d) enters the
+    RGB layer; everything else is the same MLP shape as the hypernetwork's fields. The slot
+    term is computed once per slot, so all slots still run as one batched matmul.
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__(cfg)
+        W = cfg.mlp_width
+        self.norm = nn.LayerNorm(cfg.slot_dim)
+        self.lin_x = nn.Linear(self.in_x, W)
+        self.lin_s = nn.Linear(cfg.slot_dim, W, bias=False)
+        self.hidden = nn.ModuleList(nn.Linear(W, W) for _ in range(self.n_hidden - 1))
+        self.head = nn.Linear(W, 4)
+        self.head_d = nn.Linear(self.in_d, 3, bias=False)
+        for lin in [self.lin_x, self.lin_s, *self.hidden]:
+            nn.init.kaiming_normal_(lin.weight, nonlinearity="relu")
+            if lin.bias is not None:
+                nn.init.zeros_(lin.bias)
+        with torch.no_grad():
+            self.lin_x.weight.mul_(math.sqrt(0.5))  # x and slot terms share the variance
+            self.lin_s.weight.mul_(math.sqrt(0.5))
+        nn.init.zeros_(self.head.bias)
+
+    def params(self, slots: Tensor) -> CondParams:
+        return CondParams(self.lin_s(self.norm(slots)))
+
+    def _trunk(self, h1: Tensor) -> Tensor:
+        h = h1
+        for i, lin in enumerate(self.hidden):
+            h = F.relu(lin(h))
+            if i + 2 == self.skip:
+                h = h + h1
+        return h
+
+    def eval_fields(self, p: CondParams, gx: Tensor, gd: Tensor) -> tuple[Tensor, Tensor]:
+        h1 = F.relu(self.lin_x(gx) + p.slot_term[:, :, None])  # [B, K, P, W]
+        out = self.head(self._trunk(h1))
+        sigma = self.density(out[..., 0])
+        rgb = torch.sigmoid(out[..., 1:] + self.head_d(gd))
+        return sigma, rgb
+
+    def eval_mixed(self, p: CondParams, a: Tensor, gx: Tensor, gd: Tensor) -> tuple[Tensor, Tensor]:
+        # The slot enters linearly, so mixing slots == mixing their first-layer terms.
+        h1 = F.relu(self.lin_x(gx) + torch.bmm(a, p.slot_term))
+        out = self.head(self._trunk(h1))
+        return self.density(out[..., 0]), torch.sigmoid(out[..., 1:] + self.head_d(gd))
+
+    def eval_reference(self, p: CondParams, gx: Tensor, gd: Tensor) -> tuple[Tensor, Tensor]:
+        B, K = p.slot_term.shape[:2]
+        sig, rgb = [], []
+        for b in range(B):
+            for k in range(K):
+                x = gx[b, min(k, gx.shape[1] - 1)]
+                d = gd[b, min(k, gd.shape[1] - 1)]
+                h1 = torch.relu(self.lin_x(x) + p.slot_term[b, k])
+                out = self.head(self._trunk(h1))
+                sig.append(self.density(out[:, 0]))
+                rgb.append(torch.sigmoid(out[:, 1:] + self.head_d(d)))
+        P = gx.shape[2]
+        return torch.stack(sig).view(B, K, P), torch.stack(rgb).view(B, K, P, 3)
+
+
+def build_fields(cfg: ModelConfig) -> ObjectFields:
+    """:class:`HyperNetwork` if ``cfg.hypernetwork`` else :class:`SlotConditionedMLP`."""
+    return HyperNetwork(cfg) if cfg.hypernetwork else SlotConditionedMLP(cfg)

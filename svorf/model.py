@@ -1,0 +1,466 @@
+"""sVORF: image -> slots -> object radiance fields -> slot-guided composition -> pixels.
+
+Where it sits: the model the training code (``svorf.train``), the evaluation adapter of
+``benchmark`` and the editing helpers (``svorf.edit``) use. Data conventions it expects:
+
+- images [B, 3, H, W], float, values in [0, 1]; resized to ``cfg.image_size`` if needed;
+- rays in the world frame of the dataset (z-up, origin = scene centre): rays_o [B, R, 3],
+  rays_d [B, R, 3] unit vectors. ``t``/``depth`` are distances along rays_d, i.e. the
+  Euclidean distance from the camera centre for unit directions (NOT the planar camera z of
+  the dataset's depth files: depth_z = depth * <d, camera forward axis>);
+- ``slot_mask`` [B, K] bool: True = slot used, False = masked off (packed-11 training).
+
+One forward pass (paper Fig. 1): E(I) (``encoder``) -> T(Z, E(I)) (``decoder``) -> slots S
+[B, K, D] -> hypernetwork phi_k = H(s_k) (``field``) -> for every sample point: K densities
+and colours, composed with the slot-guided masks m (``compose``) -> volume rendering with
+hierarchical sampling (``render``); the coarse pass uses the same network as the fine pass
+(one set of fields; the paper's parameter count leaves no room for a second hypernetwork).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .compose import SlotGuidedComposer, compose, compose_density_weighted
+from .config import ModelConfig
+from .decoder import build_slot_module
+from .encoder import ImageEncoder
+from .field import build_fields, positional_encoding
+from .losses import connectivity_loss
+from .render import clip_rays_to_box, sample_pdf, sample_stratified, volume_render
+
+
+@dataclass
+class RenderOutput:
+    """What :meth:`SVORF.render_rays` returns (all float32).
+
+    rgb: [B, R, 3] fine-pass colour.
+    depth: [B, R] expected termination distance sum_i w_i t_i along the unit ray direction
+        (world units; Euclidean distance from the ray origin, not planar z).
+    acc: [B, R] accumulated opacity sum_i w_i (~1: the last interval is "infinite").
+    slot_probs: [B, R, K] per-pixel slot distribution (paper 4.3): the soft masks m rendered
+        with the composite weights, sum_i w_i m_ik / acc; rows sum to 1, masked-off slots are
+        exactly 0; argmax over K is the segmentation label. None when need_aux=False.
+    connectivity: scalar connectivity (distortion) loss; 0 when disabled or need_aux=False.
+    coarse_rgb: [B, R, 3] coarse-pass colour (NeRF practice: also supervised, so the shared
+        network learns the coarse density that drives importance sampling); equals ``rgb``
+        when n_fine = 0.
+    """
+
+    rgb: Tensor
+    depth: Tensor
+    acc: Tensor
+    slot_probs: Tensor | None
+    connectivity: Tensor
+    coarse_rgb: Tensor
+
+
+@dataclass
+class _Query:
+    """Field values at the samples of one pass."""
+
+    sigma: Tensor  # [B, R, N] composed density
+    rgb: Tensor  # [B, R, N, 3] composed colour
+    sigma_k: Tensor  # [B, K, R, N] per-slot densities
+    m: Tensor  # [B, R, N, K] soft slot masks
+
+
+def _merge_queries(a: _Query, b: _Query, order: Tensor) -> _Query:
+    """Concatenate two queries along N and reorder the samples by ``order`` [B, R, N]."""
+    B, R, N = order.shape
+    K = a.m.shape[-1]
+
+    def cat_gather(x: Tensor, y: Tensor, dim: int, idx: Tensor) -> Tensor:
+        return torch.cat([x, y], dim=dim).gather(dim, idx)
+
+    return _Query(
+        cat_gather(a.sigma, b.sigma, 2, order),
+        cat_gather(a.rgb, b.rgb, 2, order[..., None].expand(B, R, N, 3)),
+        cat_gather(a.sigma_k, b.sigma_k, 3, order[:, None].expand(B, K, R, N)),
+        cat_gather(a.m, b.m, 2, order[..., None].expand(B, R, N, K)),
+    )
+
+
+class SVORF(nn.Module):
+    """The sVORF model (Qi et al., NeurIPS 2023) and its ablation variants (see ModelConfig).
+
+    Example:
+        >>> from svorf.config import model_config
+        >>> model = SVORF(model_config("smoke", num_slots=4))
+        >>> imgs = torch.rand(2, 3, 32, 32)
+        >>> o = torch.tensor([0.0, -12.0, 6.0]).expand(2, 16, 3)
+        >>> d = F.normalize(-o + 0.1 * torch.randn(2, 16, 3), dim=-1)
+        >>> out = model(imgs, o, d)
+        >>> out.rgb.shape, out.slot_probs.shape
+        (torch.Size([2, 16, 3]), torch.Size([2, 16, 4]))
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        if not isinstance(cfg, ModelConfig):
+            raise TypeError(f"SVORF: cfg must be a ModelConfig, got {type(cfg).__name__}")
+        self.cfg = cfg
+        self.encoder = ImageEncoder(cfg.enc_width, cfg.enc_blocks, cfg.feat_dim, cfg.enc_norm)
+        self.slot_module = build_slot_module(cfg)
+        self.fields = build_fields(cfg)
+        self.composer: SlotGuidedComposer | None = None
+        if cfg.composition != "density_weighted":
+            self.composer = SlotGuidedComposer(cfg, self.fields.in_x)
+
+    # ------------------------------------------------------------------ encoding
+    def encode(self, images: Tensor) -> Tensor:
+        """Input view -> slots.
+
+        Args:
+            images: [B, 3, H, W] in [0, 1]; resized (bilinear, antialiased) to image_size.
+        Returns:
+            slots [B, K, D]; slot K-1 is the background.
+        """
+        if images.dim() != 4 or images.shape[1] != 3:
+            raise ValueError(
+                f"SVORF.encode: images must be [B, 3, H, W], got {tuple(images.shape)}"
+            )
+        s = self.cfg.image_size
+        p = next(self.encoder.parameters())
+        images = images.to(device=p.device, dtype=p.dtype)
+        if tuple(images.shape[-2:]) != (s, s):
+            images = F.interpolate(
+                images, size=(s, s), mode="bilinear", align_corners=False, antialias=True
+            )
+        return self.slot_module(self.encoder(images))
+
+    # ------------------------------------------------------------------ rendering
+    def render_rays(
+        self,
+        slots: Tensor,
+        rays_o: Tensor,
+        rays_d: Tensor,
+        *,
+        slot_mask: Tensor | None = None,
+        perturb: bool = False,
+        need_aux: bool = True,
+        object_transforms: Tensor | None = None,
+    ) -> RenderOutput:
+        """Render rays of B scenes from their slots.
+
+        Args:
+            slots: [B, K, D] (last slot = background).
+            rays_o: [B, R, 3] ray origins, world frame.
+            rays_d: [B, R, 3] unit ray directions, world frame.
+            slot_mask: [B, K] bool, True = slot used. Masked slots get m = 0 (removed from
+                the composition softmax) and are left out of the connectivity loss. When
+                every scene keeps the same number of slots, the masked ones are not
+                evaluated at all.
+            perturb: stratified jitter of the coarse samples and random fine quantiles
+                (training); False gives deterministic samples (evaluation).
+            need_aux: compute slot_probs and the connectivity loss.
+            object_transforms: [B, K, 4, 4] affine maps moving each object (identity = not
+                moved); slot k's sample points (and directions) are mapped by the inverse
+                before its field and its composition logit are evaluated (paper 4.4).
+        Returns:
+            :class:`RenderOutput`.
+        """
+        B, K, D = self._check_render_inputs(slots, rays_o, rays_d, slot_mask, object_transforms)
+        rays_o = rays_o.to(device=slots.device, dtype=torch.float32)
+        rays_d = rays_d.to(device=slots.device, dtype=torch.float32)
+        if object_transforms is not None:
+            object_transforms = object_transforms.to(slots.device, torch.float32).expand(B, K, 4, 4)
+        is_bg = torch.zeros(B, K, dtype=torch.bool, device=slots.device)
+        is_bg[:, -1] = True
+        index = None
+        if slot_mask is not None:
+            slot_mask = slot_mask.to(device=slots.device, dtype=torch.bool)
+            counts = slot_mask.sum(dim=1).tolist()
+            if min(counts) == 0:
+                raise ValueError("SVORF.render_rays: slot_mask leaves a scene with no slot")
+            if min(counts) == K:
+                slot_mask = None
+            elif min(counts) == max(counts):
+                # Same number of slots everywhere: evaluate only the used ones.
+                order = torch.argsort((~slot_mask).to(torch.int8), dim=1, stable=True)
+                index = order[:, : counts[0]]  # used slots, ascending
+                slots = slots.gather(1, index[..., None].expand(-1, -1, D))
+                is_bg = index == K - 1
+                if object_transforms is not None:
+                    object_transforms = object_transforms.gather(
+                        1, index[..., None, None].expand(-1, -1, 4, 4)
+                    )
+                slot_mask = None
+        out = self._render(
+            slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, object_transforms
+        )
+        if index is not None and out.slot_probs is not None:
+            full = out.slot_probs.new_zeros(B, rays_o.shape[1], K)
+            out.slot_probs = full.scatter(
+                2, index[:, None].expand(-1, rays_o.shape[1], -1), out.slot_probs
+            )
+        return out
+
+    def _check_render_inputs(self, slots, rays_o, rays_d, slot_mask, transforms):
+        if slots.dim() != 3 or slots.shape[-1] != self.cfg.slot_dim:
+            raise ValueError(
+                f"SVORF.render_rays: slots must be [B, K, D={self.cfg.slot_dim}], "
+                f"got {tuple(slots.shape)}"
+            )
+        B, K, D = slots.shape
+        for name, r in (("rays_o", rays_o), ("rays_d", rays_d)):
+            if r.dim() != 3 or r.shape[0] != B or r.shape[-1] != 3:
+                raise ValueError(
+                    f"SVORF.render_rays: {name} must be [B={B}, R, 3], got {tuple(r.shape)}"
+                )
+        if rays_o.shape != rays_d.shape:
+            raise ValueError(
+                f"SVORF.render_rays: rays_o {tuple(rays_o.shape)} and rays_d "
+                f"{tuple(rays_d.shape)} differ"
+            )
+        if slot_mask is not None and tuple(slot_mask.shape) != (B, K):
+            raise ValueError(
+                f"SVORF.render_rays: slot_mask must be [B={B}, K={K}], got {tuple(slot_mask.shape)}"
+            )
+        if transforms is not None:
+            if transforms.dim() != 4 or transforms.shape[-2:] != (4, 4) or transforms.shape[1] != K:
+                raise ValueError(
+                    f"SVORF.render_rays: object_transforms must be [B, K={K}, 4, 4], "
+                    f"got {tuple(transforms.shape)}"
+                )
+            if self.cfg.composition == "slot_mixer":
+                raise ValueError(
+                    "SVORF.render_rays: object_transforms needs per-object fields; "
+                    "composition='slot_mixer' has one mixed field per point"
+                )
+        return B, K, D
+
+    def _autocast(self, device: torch.device):
+        if self.cfg.bf16_autocast:
+            return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def _render(self, slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, transforms):
+        cfg = self.cfg
+        B, R, _ = rays_o.shape
+        if cfg.clip_to_box:
+            near_r, far_r = clip_rays_to_box(rays_o, rays_d, cfg.near, cfg.far, cfg.box_half)
+        else:
+            near_r = rays_o.new_full((B, R), cfg.near)
+            far_r = rays_o.new_full((B, R), cfg.far)
+        with self._autocast(slots.device):
+            params = self.fields.params(slots)
+        inv = None if transforms is None else torch.linalg.inv(transforms)
+        # The background is the last used slot in every scene: foreground fields can then run
+        # on the in-box points only (fg_box fast path).
+        bg_last = bool(is_bg[:, -1].all()) and slots.shape[1] > 1
+        ctx = (slots, params, rays_o, rays_d, slot_mask, is_bg, bg_last, inv)
+
+        t_c = sample_stratified(near_r, far_r, R, cfg.n_coarse, perturb)
+        q_c = self._query(ctx, t_c)
+        rgb_c, depth, w, acc = volume_render(q_c.sigma, q_c.rgb, t_c, last_delta=cfg.last_delta)
+        rgb, t, q = rgb_c, t_c, q_c
+        if cfg.n_fine > 0:
+            mids = 0.5 * (t_c[..., 1:] + t_c[..., :-1])
+            bins = torch.cat([near_r[..., None], mids, far_r[..., None]], dim=-1)
+            t_f = sample_pdf(bins, w, cfg.n_fine, det=not perturb)
+            # The fine pass uses the union of coarse and fine samples (NeRF). The coarse
+            # samples' field values are reused (same network), only t_f is evaluated.
+            t, order = torch.sort(torch.cat([t_c, t_f], dim=-1), dim=-1)
+            q = _merge_queries(q_c, self._query(ctx, t_f), order)
+            rgb, depth, w, acc = volume_render(q.sigma, q.rgb, t, last_delta=cfg.last_delta)
+
+        slot_probs = None
+        connectivity = rgb.new_zeros(())
+        if need_aux:
+            eps = 1e-6  # rays with acc ~ 0 fall back to the mean mask: still a distribution
+            num = torch.einsum("brn,brnk->brk", w, q.m)
+            slot_probs = (num + eps * q.m.mean(dim=2)) / (acc[..., None] + eps)
+            if cfg.connectivity:
+                connectivity = connectivity_loss(q.sigma_k, t, far_r, cfg.near, cfg.far, slot_mask)
+        return RenderOutput(rgb, depth, acc, slot_probs, connectivity, rgb_c)
+
+    def _query(self, ctx, t: Tensor) -> _Query:
+        """Composed field at samples t [B, R, N] of every ray."""
+        slots, params, rays_o, rays_d, slot_mask, is_bg, bg_last, inv = ctx
+        cfg = self.cfg
+        B, R, N = t.shape
+        K = slots.shape[1]
+        P = R * N
+        x = (rays_o[:, :, None] + t[..., None] * rays_d[:, :, None]).reshape(B, P, 3)
+        dirs = F.normalize(rays_d, dim=-1)  # [B, R, 3]
+        if inv is not None:  # slot k sees the scene through its inverse transform
+            xk = torch.einsum("bkij,bpj->bkpi", inv[..., :3, :3], x) + inv[:, :, None, :3, 3]
+            dk = F.normalize(torch.einsum("bkij,brj->bkri", inv[..., :3, :3], dirs), dim=-1)
+        else:
+            xk, dk = x[:, None], dirs[:, None]  # [B, 1, P, 3], [B, 1, R, 3]
+        Kx = xk.shape[1]
+        # gamma() in float32 outside autocast (sin of large arguments is poor in bf16).
+        gx = positional_encoding(xk / cfg.box_half, cfg.pos_freqs_xyz, cfg.pos_include_input)
+        gd = positional_encoding(dk, cfg.pos_freqs_dir, cfg.pos_include_input)
+        gd = gd[:, :, :, None].expand(B, Kx, R, N, gd.shape[-1]).reshape(B, Kx, P, -1)
+
+        valid = None if slot_mask is None else slot_mask[:, None, :]  # [B, 1, K]
+        inside = None
+        if cfg.fg_box is not None:
+            inside = (xk.abs() <= cfg.fg_box).all(dim=-1)  # [B, Kx, P]
+            fg_ok = (inside.expand(B, K, P) | is_bg[:, :, None]).transpose(1, 2)  # [B, P, K]
+            valid = fg_ok if valid is None else valid & fg_ok
+
+        with self._autocast(slots.device):
+            if cfg.composition == "slot_mixer":
+                a = self.composer(gx[:, 0], slots, valid)  # [B, P, K]
+                sigma, rgb = self.fields.eval_mixed(params, a.to(gx.dtype), gx[:, 0], gd[:, 0])
+                sigma, rgb, m = sigma.float(), rgb.float(), a
+                # Connectivity for the mixed field: each slot's share of the density.
+                sigma_k = a.transpose(1, 2) * sigma[:, None]
+            else:
+                sigma_k, rgb_k = self._eval_slots(params, gx, gd, inside, is_bg, bg_last)
+                if cfg.composition == "slot_guided":
+                    m = self.composer(gx if inv is not None else gx[:, 0], slots, valid)
+                    sigma, rgb = compose(sigma_k, rgb_k, m)
+                else:
+                    sigma, rgb, m = compose_density_weighted(sigma_k, rgb_k, valid)
+        return _Query(
+            sigma.view(B, R, N),
+            rgb.view(B, R, N, 3),
+            sigma_k.float().view(B, K, R, N),
+            m.float().view(B, R, N, K),
+        )
+
+    def _eval_slots(self, params, gx, gd, inside, is_bg, bg_last):
+        """Per-slot fields [B, K, P], [B, K, P, 3]; foreground slots are 0 outside fg_box."""
+        fields = self.fields
+        B, Kx, P, Cx = gx.shape
+        K = params.num_slots
+        if inside is None:
+            sigma_k, rgb_k = fields.eval_fields(params, gx, gd)
+            return sigma_k.float(), rgb_k.float()
+        if not (bg_last and Kx == 1):  # general path: evaluate everywhere, zero outside
+            sigma_k, rgb_k = fields.eval_fields(params, gx, gd)
+            keep = inside.expand(B, K, P) | is_bg[:, :, None]
+            return sigma_k.float() * keep, rgb_k.float() * keep[..., None]
+        # Fast path: foreground slots only at the in-box points (padded to the largest count
+        # over scenes), the background slot everywhere.
+        inside = inside[:, 0]  # [B, P]
+        counts = inside.sum(dim=1)
+        pm = int(counts.max())
+        s_bg, c_bg = fields.eval_fields(params.select(slice(K - 1, K)), gx, gd)
+        s_fg = gx.new_zeros(B, K - 1, P, dtype=torch.float32)
+        c_fg = gx.new_zeros(B, K - 1, P, 3, dtype=torch.float32)
+        if pm == P:
+            s_fg, c_fg = fields.eval_fields(params.select(slice(0, K - 1)), gx, gd)
+        elif pm > 0:
+            order = torch.argsort((~inside).to(torch.int8), dim=1, stable=True)[:, :pm]
+            pad = torch.arange(pm, device=gx.device)[None] >= counts[:, None]
+            gx_in = gx[:, 0].gather(1, order[..., None].expand(-1, -1, Cx))[:, None]
+            gd_in = gd[:, 0].gather(1, order[..., None].expand(-1, -1, gd.shape[-1]))[:, None]
+            s_in, c_in = fields.eval_fields(params.select(slice(0, K - 1)), gx_in, gd_in)
+            dst = torch.where(pad, P, order)[:, None].expand(B, K - 1, pm)  # pads -> dummy P
+            s_fg = s_in.new_zeros(B, K - 1, P + 1).scatter(2, dst, s_in)[..., :P]
+            c_fg = c_in.new_zeros(B, K - 1, P + 1, 3).scatter(
+                2, dst[..., None].expand(-1, -1, -1, 3), c_in
+            )[:, :, :P]
+        sigma_k = torch.cat([s_fg.float(), s_bg.float()], dim=1)
+        rgb_k = torch.cat([c_fg.float(), c_bg.float()], dim=1)
+        return sigma_k, rgb_k
+
+    # ------------------------------------------------------------------ training API
+    def forward(self, images: Tensor, rays_o: Tensor, rays_d: Tensor, **kw) -> RenderOutput:
+        """encode(images) + render_rays(slots, rays_o, rays_d, **kw).
+
+        In training mode with ``cfg.slot_mask_train > 0`` and no ``slot_mask`` given, a
+        random mask from :meth:`sample_slot_mask` is used (packed-11 setting).
+        """
+        slots = self.encode(images)
+        if self.training and self.cfg.slot_mask_train > 0 and kw.get("slot_mask") is None:
+            kw["slot_mask"] = self.sample_slot_mask(slots.shape[0], device=slots.device)
+        return self.render_rays(slots, rays_o, rays_d, **kw)
+
+    def sample_slot_mask(
+        self, batch: int, *, device=None, generator: torch.Generator | None = None
+    ) -> Tensor | None:
+        """[B, K] bool with ``cfg.slot_mask_train`` random object slots off per scene.
+
+        The background slot (K-1) is never masked. None when slot_mask_train == 0.
+        """
+        n = self.cfg.slot_mask_train
+        if n == 0:
+            return None
+        K = self.cfg.num_slots
+        r = torch.rand(batch, K - 1, generator=generator, device=device)
+        off = torch.argsort(r, dim=1)[:, :n]
+        mask = torch.ones(batch, K, dtype=torch.bool, device=device)
+        return mask.scatter(1, off, False)
+
+    def loss(self, out: RenderOutput, target_rgb: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """Training loss: MSE(fine) + coarse_loss_weight * MSE(coarse) + lambda * connectivity.
+
+        The paper sums squared errors over the rays; the mean is used here (a constant
+        factor absorbed by the learning rate, and independent of the batch size).
+
+        Args:
+            out: output of :meth:`render_rays` / :meth:`forward`.
+            target_rgb: [B, R, 3] in [0, 1].
+        Returns:
+            total (scalar, differentiable) and detached scalars: "mse", "mse_coarse",
+            "connectivity", "psnr", "total".
+        """
+        if target_rgb.shape != out.rgb.shape:
+            raise ValueError(
+                f"SVORF.loss: target_rgb must be {tuple(out.rgb.shape)}, got "
+                f"{tuple(target_rgb.shape)}"
+            )
+        cfg = self.cfg
+        target = target_rgb.to(out.rgb.device, torch.float32)
+        mse = F.mse_loss(out.rgb, target)
+        total = mse
+        mse_c = F.mse_loss(out.coarse_rgb, target)
+        if cfg.n_fine > 0 and cfg.coarse_loss_weight > 0:
+            total = total + cfg.coarse_loss_weight * mse_c
+        if cfg.connectivity:
+            total = total + cfg.connect_lambda * out.connectivity
+        stats = {
+            "mse": mse.detach(),
+            "mse_coarse": mse_c.detach(),
+            "connectivity": out.connectivity.detach(),
+            "psnr": -10.0 * torch.log10(mse.detach().clamp_min(1e-10)),
+            "total": total.detach(),
+        }
+        return total, stats
+
+    @torch.no_grad()
+    def render_chunked(
+        self, slots: Tensor, rays_o: Tensor, rays_d: Tensor, chunk: int = 4096, **kw
+    ) -> RenderOutput:
+        """render_rays over chunks of ``chunk`` rays per scene, without gradients (evaluation).
+
+        Args:
+            slots [B, K, D], rays_o / rays_d [B, R, 3]; ``**kw`` as for render_rays.
+        Returns:
+            RenderOutput over all R rays (connectivity: ray-weighted mean over chunks).
+        """
+        if chunk <= 0:
+            raise ValueError(f"SVORF.render_chunked: chunk must be > 0, got {chunk}")
+        R = rays_o.shape[1]
+        outs = [
+            self.render_rays(slots, rays_o[:, i : i + chunk], rays_d[:, i : i + chunk], **kw)
+            for i in range(0, R, chunk)
+        ]
+        sizes = [o.rgb.shape[1] for o in outs]
+        probs = None
+        if all(o.slot_probs is not None for o in outs):
+            probs = torch.cat([o.slot_probs for o in outs], dim=1)
+        conn = sum(o.connectivity * n for o, n in zip(outs, sizes)) / max(R, 1)
+        return RenderOutput(
+            torch.cat([o.rgb for o in outs], dim=1),
+            torch.cat([o.depth for o in outs], dim=1),
+            torch.cat([o.acc for o in outs], dim=1),
+            probs,
+            torch.as_tensor(conn, dtype=torch.float32, device=slots.device),
+            torch.cat([o.coarse_rgb for o in outs], dim=1),
+        )
+
+    def count_parameters(self, trainable_only: bool = True) -> int:
+        """Number of (trainable) parameters."""
+        return sum(p.numel() for p in self.parameters() if p.requires_grad or not trainable_only)
