@@ -37,12 +37,12 @@ __all__ = [
     "config_dict",
     "dataset_fingerprint",
     "ground_truth",
-    "num_slots",
-    "svorf_preset",
     "load_model",
     "model_config",
+    "num_slots",
     "open_dataset",
     "predict_scene",
+    "svorf_preset",
     "train",
     "train_config",
     "volume_render",
@@ -114,7 +114,9 @@ def num_slots(train_preset: str, variant: str = "full") -> int:
     return int(presets[key].num_slots)
 
 
-def model_config(scale: str, train_preset: str, variant: str = "full", image_size: int | None = None) -> Any:
+def model_config(
+    scale: str, train_preset: str, variant: str = "full", image_size: int | None = None
+) -> Any:
     """The svorf ``ModelConfig`` of one benchmark model.
 
     Args:
@@ -170,7 +172,9 @@ def train(
         params, device...), JSON-able (non-finite floats become None).
     """
     st = _svorf_train()
-    out = st.train(Path(data_dir), Path(run_dir), model_cfg, train_cfg, resume=True, progress=progress)
+    out = st.train(
+        Path(data_dir), Path(run_dir), model_cfg, train_cfg, resume=True, progress=progress
+    )
     return _jsonable_summary(out)
 
 
@@ -276,7 +280,9 @@ def write_synthetic_split(root: str | os.PathLike, **kwargs: Any) -> Path:
     return write(root, **kwargs)
 
 
-def volume_render(sigma: torch.Tensor, rgb: torch.Tensor, t: torch.Tensor, last_delta: float = 1e10):
+def volume_render(
+    sigma: torch.Tensor, rgb: torch.Tensor, t: torch.Tensor, last_delta: float = 1e10
+):
     """svorf's volume renderer: ``(rgb [...,3], depth [...], weights [...,N], acc [...])``."""
     from svorf.render import volume_render as vr
 

@@ -26,12 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from scenefmt import SplitLayout, is_scene_complete, read_json, read_rgb, write_rgb
-
 from benchmark import adapter
 from benchmark.scales import ScaleSettings
+from scenefmt import SplitLayout, is_scene_complete, read_json, read_rgb, write_rgb
 
-__all__ = ["DatasetInfo", "ensure_dataset", "DATA_SOURCES", "dataset_dir"]
+__all__ = ["DATA_SOURCES", "DatasetInfo", "dataset_dir", "ensure_dataset"]
 
 DATA_SOURCES = ("generator", "synthetic")
 

@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,7 +26,7 @@ from torch import Tensor
 from benchmark import adapter
 from benchmark.metrics import depth_errors, lpips_or_null, psnr, segmentation_metrics, ssim
 
-__all__ = ["EvalResult", "LPIPS_REASON", "aggregate", "evaluate_baselines", "evaluate_model"]
+__all__ = ["LPIPS_REASON", "EvalResult", "aggregate", "evaluate_baselines", "evaluate_model"]
 
 SEG_KEYS = ("ari", "fg_ari", "nv_ari", "nv_fg_ari", "nv_ari_last", "ari_all", "fg_ari_all")
 IMAGE_KEYS = ("psnr", "ssim", "lpips")
@@ -85,9 +86,9 @@ class EvalResult:
 _PERCENT = set(SEG_KEYS)
 
 
-def aggregate(per_scene: dict[str, list[float]], reasons: dict[str, str] | None = None) -> tuple[
-    dict[str, float | None], dict[str, str], dict[str, int], dict[str, list[float | None]]
-]:
+def aggregate(
+    per_scene: dict[str, list[float]], reasons: dict[str, str] | None = None
+) -> tuple[dict[str, float | None], dict[str, str], dict[str, int], dict[str, list[float | None]]]:
     """Mean over scenes ignoring NaN; ARI family scaled to percent.
 
     Returns:
@@ -108,7 +109,11 @@ def aggregate(per_scene: dict[str, list[float]], reasons: dict[str, str] | None 
             metrics[k] = float(arr[finite].mean() * scale)
         else:
             metrics[k] = None
-            nulls[k] = reasons.get(k, "no_finite_value (e.g. no foreground pixels in any scene)")
+            nulls[k] = reasons.get(
+                k,
+                "no_finite_value (NaN/inf in every scene: e.g. no foreground pixels, or "
+                "identical images giving PSNR inf)",
+            )
     for k, why in reasons.items():
         if k not in metrics:
             metrics[k] = None
@@ -190,7 +195,17 @@ def evaluate_model(
                 f"predict_scene returned labels {tuple(pred.labels.shape)}, expected "
                 f"{tuple(truth.instances.shape)} like the ground truth"
             )
-        _score_scene(pred.rgb, pred.depth_z, pred.labels, truth, input_view, lpips_weights, acc, reasons, details)
+        _score_scene(
+            pred.rgb,
+            pred.depth_z,
+            pred.labels,
+            truth,
+            input_view,
+            lpips_weights,
+            acc,
+            reasons,
+            details,
+        )
         if sample is None:
             sample = {
                 "gt_rgb": truth.images.permute(0, 2, 3, 1).numpy(),
@@ -203,14 +218,28 @@ def evaluate_model(
         if progress:
             progress(j + 1, len(idx))
     metrics, nulls, nans, scenes = aggregate(acc, reasons)
-    return EvalResult(metrics, nulls, len(idx), nans, scenes, time.perf_counter() - t0, details, sample)
+    return EvalResult(
+        metrics, nulls, len(idx), nans, scenes, time.perf_counter() - t0, details, sample
+    )
 
 
 BASELINES = {
     "one_label": "chance: all pixels one label",
     "random_slots": "chance: uniform random slot per pixel",
+    "spatial_blocks": "chance: K image blocks (2 rows)",
     "median_colour": "chance: flat median colour of the input view",
 }
+
+
+def _blocks(shape: torch.Size, num_slots: int) -> Tensor:
+    """[V, H, W] labels of a fixed 2-row grid of ``num_slots`` blocks."""
+    v, h, w = shape
+    rows = 2 if num_slots > 1 else 1
+    cols = max(1, math.ceil(num_slots / rows))
+    y = torch.arange(h) * rows // h
+    x = torch.arange(w) * cols // w
+    lab = (y[:, None] * cols + x[None, :]).clamp_max(num_slots - 1)
+    return lab.expand(v, h, w).contiguous()
 
 
 def evaluate_baselines(
@@ -228,6 +257,10 @@ def evaluate_baselines(
       scene shows a single object).
     - ``random_slots``: each pixel gets a uniform random slot in ``[0, num_slots)``
       (seeded); the expected ARI of an uninformed labeling.
+    - ``spatial_blocks``: each view cut into ``num_slots`` blocks (2 rows of
+      ``ceil(K/2)`` columns), the same for every scene: an "areas, not objects"
+      partition like the paper's w/o-NVS failure mode; with few large objects it
+      scores well above 0, which is why a model must beat the best baseline.
     - ``median_colour``: novel views predicted as a flat image of the input view's
       per-channel median colour (PSNR/SSIM/LPIPS floor of an image-independent guess).
 
@@ -244,13 +277,55 @@ def evaluate_baselines(
         truth = adapter.ground_truth(dataset, i)
         shape = truth.instances.shape
         ones = torch.zeros(shape, dtype=torch.long)
-        _score_scene(None, None, ones, truth, input_view, lpips_weights, out["one_label"], reasons["one_label"], details["one_label"])
+        _score_scene(
+            None,
+            None,
+            ones,
+            truth,
+            input_view,
+            lpips_weights,
+            out["one_label"],
+            reasons["one_label"],
+            details["one_label"],
+        )
         rnd = torch.randint(0, num_slots, shape, generator=gen)
-        _score_scene(None, None, rnd, truth, input_view, lpips_weights, out["random_slots"], reasons["random_slots"], details["random_slots"])
+        _score_scene(
+            None,
+            None,
+            rnd,
+            truth,
+            input_view,
+            lpips_weights,
+            out["random_slots"],
+            reasons["random_slots"],
+            details["random_slots"],
+        )
+        blocks = _blocks(shape, num_slots)
+        _score_scene(
+            None,
+            None,
+            blocks,
+            truth,
+            input_view,
+            lpips_weights,
+            out["spatial_blocks"],
+            reasons["spatial_blocks"],
+            details["spatial_blocks"],
+        )
         med = truth.images[input_view].flatten(1).median(dim=1).values  # [3]
         flat = med[None, :, None, None].expand_as(truth.images).contiguous()
         seg = {}
-        _score_scene(flat, None, ones, truth, input_view, lpips_weights, seg, reasons["median_colour"], details["median_colour"])
+        _score_scene(
+            flat,
+            None,
+            ones,
+            truth,
+            input_view,
+            lpips_weights,
+            seg,
+            reasons["median_colour"],
+            details["median_colour"],
+        )
         for k in IMAGE_KEYS:
             if k in seg:
                 out["median_colour"].setdefault(k, []).extend(seg[k])

@@ -18,7 +18,7 @@ import numpy as np
 
 from scenefmt import atomic_write_bytes
 
-__all__ = ["bar_chart", "qualitative_grid", "label_colors"]
+__all__ = ["bar_chart", "label_colors", "qualitative_grid", "speed_chart", "stability_chart"]
 
 
 def _plt():
@@ -114,7 +114,9 @@ def qualitative_grid(
             ax.set_xticks([])
             ax.set_yticks([])
             if r == 0:
-                ax.set_title("input (view %d)" % v if v == input_view else "novel view %d" % v, fontsize=8)
+                ax.set_title(
+                    f"input (view {v})" if v == input_view else f"novel view {v}", fontsize=8
+                )
             if v == 0:
                 ax.set_ylabel(name, fontsize=8)
     fig.suptitle(title, fontsize=9)
@@ -135,9 +137,10 @@ def bar_chart(
         path: Output PNG.
         title: Figure title.
         groups: One dict per model row: ``{"label": str, "paper": {metric: v|None},
-            "measured": {metric: v|None}}``.
+            "measured": {metric: v|None}}`` and optionally ``"chance": {metric: v}``,
+            the best chance baseline on that row's test set (a red tick over the group).
         metrics: Metric names to plot, one panel each.
-        chance: Optional ``{metric: value}`` drawn as a dashed line (chance baseline).
+        chance: Optional ``{metric: value}`` drawn as a dashed line across all groups.
 
     Returns:
         The file name of ``path``.
@@ -164,11 +167,97 @@ def bar_chart(
                 ax.text(xi + 0.2, 0.5, "null", ha="center", va="bottom", fontsize=6, rotation=90)
         if chance and chance.get(metric) is not None:
             ax.axhline(chance[metric], color="#d62728", ls="--", lw=1, label="chance baseline")
+        ticks = [(xi, g.get("chance", {}).get(metric)) for xi, g in zip(x, groups, strict=True)]
+        ticks = [(xi, v) for xi, v in ticks if v is not None]
+        if ticks:
+            ax.hlines(
+                [v for _, v in ticks],
+                [xi - 0.45 for xi, _ in ticks],
+                [xi + 0.45 for xi, _ in ticks],
+                colors="#d62728",
+                linestyles="--",
+                lw=1.2,
+                label="best chance baseline (same test set)",
+            )
         ax.set_xticks(x)
         ax.set_xticklabels([g["label"] for g in groups], rotation=35, ha="right", fontsize=7)
         ax.set_title(metric, fontsize=9)
-        ax.set_ylim(min(0.0, np.nanmin(mv + pv + [0.0]) - 5), 100.0)
-        ax.legend(fontsize=7)
+        # Headroom above 100 keeps the legend clear of the bars.
+        ax.set_ylim(min(0.0, np.nanmin(mv + pv + [0.0]) - 5), 122.0)
+        ax.set_yticks([0, 20, 40, 60, 80, 100])
+        ax.legend(fontsize=7, loc="upper center", ncol=3, frameon=False)
     fig.suptitle(title, fontsize=10)
+    _save(fig, path)
+    return path.name
+
+
+def speed_chart(path: str | os.PathLike, rows: list[dict[str, Any]], scale: str) -> str:
+    """Memory and epoch time of tab:time: the paper's models beside the measured sVORF.
+
+    Args:
+        path: Output PNG.
+        rows: report rows (those of table ``tab:time`` are drawn).
+        scale: the measured scale (for labels).
+
+    Returns:
+        The file name of ``path``.
+    """
+    plt = _plt()
+    path = Path(path)
+    sel = [r for r in rows if r["table"] == "tab:time"]
+    labels = [
+        r["model"] + (f"\n(measured, {scale})" if r["source"] == "measured" else "\n(paper)")
+        for r in sel
+    ]
+    colors = ["#1f77b4" if r["source"] == "measured" else "#9e9e9e" for r in sel]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    for ax, metric, unit in zip(axes, ("memory_gb", "epoch_time_s"), ("GB", "s"), strict=True):
+        vals = [r["metrics"].get(metric) for r in sel]
+        ax.bar(range(len(sel)), [np.nan if v is None else v for v in vals], color=colors)
+        for i, v in enumerate(vals):
+            if v is not None:
+                ax.text(i, v, f"{v:.3g}", ha="center", va="bottom", fontsize=7)
+        ax.set_xticks(range(len(sel)))
+        ax.set_xticklabels(labels, rotation=30, ha="right", fontsize=7)
+        ax.set_title(f"{metric} ({unit})", fontsize=9)
+    fig.suptitle(
+        "tab:time: training memory and one CLEVR-567 epoch at batch 1 (paper: V100)", fontsize=10
+    )
+    _save(fig, path)
+    return path.name
+
+
+def stability_chart(path: str | os.PathLike, rows: list[dict[str, Any]]) -> str:
+    """Log-scale max errors per stress case (rgb, acc, relative depth); failures in red."""
+    plt = _plt()
+    path = Path(path)
+    names = [r["model"] for r in rows]
+    fig, ax = plt.subplots(figsize=(11, 4.2))
+    x = np.arange(len(rows))
+    for off, key, color in (
+        (-0.25, "max_abs_err_rgb", "#1f77b4"),
+        (0.0, "max_abs_err_acc", "#2ca02c"),
+        (0.25, "max_rel_err_depth", "#9467bd"),
+    ):
+        vals = [r["metrics"].get(key) for r in rows]
+        ax.bar(
+            x + off,
+            [max(v, 1e-12) if v is not None else np.nan for v in vals],
+            0.25,
+            label=key,
+            color=color,
+        )
+    for i, r in enumerate(rows):
+        if not r.get("pass", True):
+            ax.text(i, 1.5e-12, "FAIL", color="#d62728", ha="center", fontsize=7, rotation=90)
+    ax.axhline(1e-4, color="#d62728", ls="--", lw=1, label="tolerance 1e-4")
+    ax.set_yscale("log")
+    ax.set_ylim(1e-12, 1.0)
+    ax.set_xticks(x)
+    ax.set_xticklabels(names, rotation=35, ha="right", fontsize=7)
+    ax.legend(fontsize=7)
+    ax.set_title(
+        "volume_render vs float64 reference (errors floored at 1e-12 for display)", fontsize=9
+    )
     _save(fig, path)
     return path.name

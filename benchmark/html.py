@@ -20,11 +20,17 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+from benchmark.paper_numbers import PAPER_TABLES
 from scenefmt import atomic_write_bytes
 
-from benchmark.paper_numbers import PAPER_TABLES
-
-__all__ = ["chromium_binary", "fmt_value", "render_html", "render_screenshot", "write_index"]
+__all__ = [
+    "chromium_binary",
+    "fmt_value",
+    "metric_columns",
+    "render_html",
+    "render_screenshot",
+    "write_index",
+]
 
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:24px;
@@ -51,6 +57,12 @@ def fmt_value(v: Any, metric: str = "") -> str:
     if isinstance(v, int):
         return str(v)
     if isinstance(v, float):
+        if metric == "nonfinite_count" or (metric.startswith("n_") and v.is_integer()):
+            return str(int(v))
+        if v == 0:
+            return "0"
+        if abs(v) < 1e-3 or abs(v) >= 1e5:
+            return f"{v:.2e}"
         if metric in ("ssim", "lpips") or abs(v) < 1:
             return f"{v:.4f}"
         return f"{v:.2f}"
@@ -61,16 +73,30 @@ def _e(x: Any) -> str:
     return html.escape(str(x))
 
 
+def metric_columns(table: str, rows: list[dict[str, Any]]) -> list[str]:
+    """Column order of a table: the paper's columns first, then the rest in schema order.
+
+    (Report JSON is written with sorted keys, so the dict order of a row is alphabetical.)
+    """
+    from benchmark.schema import METRIC_UNITS
+
+    present = {m for r in rows for m in r["metrics"]}
+    cols: list[str] = []
+    for prow in PAPER_TABLES.get(table, {}).get("rows", [])[:1]:
+        cols.extend(m for m in prow["metrics"] if m in present)
+    cols.extend(m for m in METRIC_UNITS if m in present and m not in cols)
+    cols.extend(sorted(present - set(cols)))
+    return cols
+
+
 def _rows_table(rows: list[dict[str, Any]], scale: str) -> str:
-    metrics: list[str] = []
-    for r in rows:
-        for m in r["metrics"]:
-            if m not in metrics:
-                metrics.append(m)
+    metrics = metric_columns(rows[0]["table"], rows) if rows else []
     head = "".join(f"<th>{_e(m)}</th>" for m in metrics)
     out = [
-        "<table><tr><th class=l>model</th><th class=l>dataset</th><th class=l>source</th>"
-        f"<th>scenes</th>{head}<th class=l>notes</th></tr>"
+        (
+            "<table><tr><th class=l>model</th><th class=l>dataset</th><th class=l>source</th>"
+            f"<th>n</th>{head}<th class=l>notes</th></tr>"
+        )
     ]
     for r in rows:
         src = r["source"]
@@ -81,14 +107,56 @@ def _rows_table(rows: list[dict[str, Any]], scale: str) -> str:
             title = r["null_reasons"].get(m, "") if m in r["metrics"] and v is None else ""
             cells.append(f"<td title='{_e(title)}'>{fmt_value(v, m)}</td>")
         notes = []
+        if "pass" in r:
+            notes.append("pass" if r["pass"] else "<b>FAIL</b>")
         if r.get("note"):
             notes.append(_e(r["note"]))
         for m, why in sorted(r["null_reasons"].items()):
             notes.append(f"{_e(m)}: {_e(why)[:120]}")
         out.append(
             f"<tr class={_e(src)}><td class=l>{_e(r['model'])}</td><td class=l>{_e(r['dataset'])}</td>"
-            f"<td class=l>{_e(label)}</td><td>{_e(r.get('n_scenes', ''))}</td>{''.join(cells)}"
+            f"<td class=l>{_e(label)}</td><td>{_e(r.get('n_scenes', r.get('n_cases', '')))}</td>{''.join(cells)}"
             f"<td class=l>{'<br>'.join(notes)}</td></tr>"
+        )
+    out.append("</table>")
+    return "".join(out)
+
+
+def _verdicts(report: dict[str, Any]) -> str:
+    """A headline saying plainly whether the measured models decompose, and a table."""
+    vs = report.get("verdicts") or []
+    if not vs:
+        return ""
+    yes = [v for v in vs if v.get("decomposes")]
+    no = [v for v in vs if v.get("decomposes") is False]
+    scale = report["scale"]
+    if no and not yes:
+        head = (
+            f"<div class=warn><b>At scale '{_e(scale)}' no measured model decomposes the scenes</b> "
+            f"(FG-ARI not far above the chance baselines, see below). These numbers test the "
+            f"pipeline, not sVORF's accuracy.</div>"
+        )
+    elif no:
+        head = (
+            f"<div class=warn><b>{len(no)} of {len(vs)} measured rows do not decompose</b> at "
+            f"scale '{_e(scale)}' (see below).</div>"
+        )
+    else:
+        head = f"<div class=ok><b>Every measured row decomposes</b> at scale '{_e(scale)}'.</div>"
+    out = [
+        head,
+        (
+            "<table><tr><th class=l>table</th><th class=l>model</th><th class=l>dataset</th>"
+            "<th>FG-ARI</th><th>best chance</th><th class=l>decomposes</th><th class=l>verdict</th></tr>"
+        ),
+    ]
+    for v in vs:
+        cls = "measured" if v.get("decomposes") else "baseline"
+        out.append(
+            f"<tr class={cls}><td class=l>{_e(v.get('table', ''))}</td><td class=l>{_e(v['model'])}</td>"
+            f"<td class=l>{_e(v['dataset'])}</td><td>{fmt_value(v.get('fg_ari'), 'fg_ari')}</td>"
+            f"<td>{fmt_value(v.get('chance_fg_ari'), 'fg_ari')}</td><td class=l>{_e(v.get('decomposes'))}</td>"
+            f"<td class=l>{_e(v['message'])}</td></tr>"
         )
     out.append("</table>")
     return "".join(out)
@@ -103,9 +171,7 @@ def render_html(report: dict[str, Any]) -> str:
         f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>",
         f"<h1>{_e(title)}</h1>",
     ]
-    for v in report.get("verdicts", []):
-        cls = "ok" if v.get("decomposes") else "warn"
-        parts.append(f"<div class={cls}><b>{_e(v['dataset'])} / {_e(v['model'])}:</b> {_e(v['message'])}</div>")
+    parts.append(_verdicts(report))
     if report.get("status") != "complete":
         parts.append("<div class=warn>Report status: partial (some rows are missing).</div>")
     hw = report["hardware"]
@@ -115,10 +181,16 @@ def render_html(report: dict[str, Any]) -> str:
         ("protocol / scale", f"{report['protocol']} / {scale}"),
         ("created (UTC)", report["created_utc"]),
         ("git commit", git.get("commit") or f"unknown ({git.get('reason')})"),
-        ("hardware", f"{hw['cpu_model']}, {hw['cpu_cores']} cores, device {hw['device']}"
-         + (f" ({hw['gpu_name']})" if hw.get("gpu_name") else "")),
+        (
+            "hardware",
+            f"{hw['cpu_model']}, {hw['cpu_cores']} cores, device {hw['device']}"
+            + (f" ({hw['gpu_name']})" if hw.get("gpu_name") else ""),
+        ),
         ("torch / python", f"{hw['torch_version']} / {hw['python_version']}"),
-        ("wall time (s)", ", ".join(f"{k} {wall[k]:.1f}" for k in ("data", "training", "evaluation", "total"))),
+        (
+            "wall time (s)",
+            ", ".join(f"{k} {wall[k]:.1f}" for k in ("data", "training", "evaluation", "total")),
+        ),
         ("seeds", ", ".join(f"{k}={v}" for k, v in report["seeds"].items())),
     ]
     parts.append("<table class=meta>")
@@ -143,8 +215,10 @@ def render_html(report: dict[str, Any]) -> str:
         for f in report["figures"]:
             parts.append(f"<div><p><code>{_e(f)}</code></p><img src='{_e(f)}' alt='{_e(f)}'></div>")
 
-    parts.append("<h2>Datasets</h2><table><tr><th class=l>name</th><th class=l>split</th>"
-                 "<th>scenes</th><th>res.</th><th class=l>source</th><th class=l>fingerprint</th></tr>")
+    parts.append(
+        "<h2>Datasets</h2><table><tr><th class=l>name</th><th class=l>split</th>"
+        "<th>scenes</th><th>res.</th><th class=l>source</th><th class=l>fingerprint</th></tr>"
+    )
     for d in report["datasets"]:
         parts.append(
             f"<tr><td class=l>{_e(d['name'])}</td><td class=l>{_e(d['split'])}</td><td>{d['n_scenes']}</td>"
@@ -152,15 +226,19 @@ def render_html(report: dict[str, Any]) -> str:
         )
     parts.append("</table>")
     if report["models"]:
-        parts.append("<h2>Models</h2><table><tr><th class=l>run key</th><th class=l>variant</th>"
-                     "<th class=l>train data</th><th>seed</th><th>train s</th><th class=l>reused</th></tr>")
+        parts.append(
+            "<h2>Models</h2><table><tr><th class=l>run key</th><th class=l>variant</th>"
+            "<th class=l>train data</th><th>seed</th><th>train s</th><th class=l>reused</th></tr>"
+        )
         for m in report["models"]:
             parts.append(
                 f"<tr><td class=l><code>{_e(m['run_key'])}</code></td><td class=l>{_e(m['variant'])}</td>"
                 f"<td class=l>{_e(m['train_dataset'])}</td><td>{m['seed']}</td>"
                 f"<td>{m['train_wall_s']:.1f}</td><td class=l>{m['reused']}</td></tr>"
             )
-        parts.append("</table><p>Full model and training configs are in <code>report.json</code>.</p>")
+        parts.append(
+            "</table><p>Full model and training configs are in <code>report.json</code>.</p>"
+        )
     parts.append("<h2>Scale settings</h2><pre>")
     parts.append(_e(_pretty(report.get("scale_settings", {}))))
     parts.append("</pre></body></html>\n")
@@ -203,14 +281,24 @@ def render_screenshot(
     """
     exe = chromium_binary()
     if exe is None:
-        raise FileNotFoundError("no chromium binary on PATH; install it with: apt-get install -y chromium")
+        raise FileNotFoundError(
+            "no chromium binary on PATH; install it with: apt-get install -y chromium"
+        )
     png = Path(png).resolve()
     url = Path(index_html).resolve().as_uri()
     cmd = [
-        exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-        f"--window-size={size[0]},{size[1]}", f"--screenshot={png}", url,
-    ]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+        exe,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--hide-scrollbars",
+        f"--window-size={size[0]},{size[1]}",
+        f"--screenshot={png}",
+        url,
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, check=False)
     if not png.is_file():
-        raise RuntimeError(f"chromium wrote no screenshot (rc={proc.returncode}): {proc.stderr[-2000:]}")
+        raise RuntimeError(
+            f"chromium wrote no screenshot (rc={proc.returncode}): {proc.stderr[-2000:]}"
+        )
     return png

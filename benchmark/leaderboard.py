@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from benchmark.html import fmt_value
+from benchmark.html import fmt_value, metric_columns
 from benchmark.paper_numbers import PAPER_TABLES
 from benchmark.report import utc_now, write_json
 from benchmark.schema import SchemaError, validate_report
@@ -25,7 +25,9 @@ LEADERBOARD_SCHEMA_VERSION = "1.0"
 
 
 def _find_reports(root: Path) -> list[Path]:
-    return sorted(p for p in root.rglob("report.json") if "runs" not in p.relative_to(root).parts[:-1])
+    return sorted(
+        p for p in root.rglob("report.json") if "runs" not in p.relative_to(root).parts[:-1]
+    )
 
 
 def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]:
@@ -58,16 +60,25 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
             skipped.append({"report": rel, "reason": str(err)[:500]})
             continue
         reports.append(
-            {"report": rel, "protocol": report["protocol"], "scale": report["scale"],
-             "status": report["status"], "created_utc": report["created_utc"]}
-        )  # fmt: skip
-        for row in report["rows"]:
+            {
+                "report": rel,
+                "protocol": report["protocol"],
+                "scale": report["scale"],
+                "status": report["status"],
+                "created_utc": report["created_utc"],
+            }
+        )
+        for pos, row in enumerate(report["rows"]):
             src = row["source"]
             scale = None if src == "paper" else report["scale"]
             key = (
                 None if src == "paper" else report["protocol"],
-                scale, row["table"], row["model"], row["dataset"], src,
-            )  # fmt: skip
+                scale,
+                row["table"],
+                row["model"],
+                row["dataset"],
+                src,
+            )
             entry = dict(row)
             entry.update(
                 protocol=report["protocol"],
@@ -76,6 +87,7 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
                 created_utc=report["created_utc"],
                 git_commit=report["git"].get("commit"),
                 device=report["hardware"].get("device"),
+                position=pos,
             )
             old = best.get(key)
             if old is None or old["created_utc"] <= entry["created_utc"]:
@@ -85,10 +97,14 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
     entries = sorted(
         best.values(),
         key=lambda e: (
-            order.get(e["table"], len(order)), e["table"], e["dataset"],
-            src_order[e["source"]], e.get("scale") or "", e["model"],
+            order.get(e["table"], len(order)),
+            e["table"],
+            e["dataset"],
+            src_order[e["source"]],
+            e.get("scale") or "",
+            e["position"],
         ),
-    )  # fmt: skip
+    )
     board = {
         "schema_version": LEADERBOARD_SCHEMA_VERSION,
         "kind": "svorf-benchmark-leaderboard",
@@ -112,20 +128,23 @@ def format_leaderboard(board: dict[str, Any]) -> str:
     for table, rows in tables.items():
         if all(r["source"] == "paper" for r in rows):
             continue
-        metrics: list[str] = []
-        for r in rows:
-            for m in r["metrics"]:
-                if m not in metrics:
-                    metrics.append(m)
+        metrics = metric_columns(table, rows)
         caption = PAPER_TABLES.get(table, {}).get("caption", "")
         lines.append(f"== {table}  {caption}")
         header = ["model", "dataset", "source", *metrics]
         body = []
         for r in rows:
             src = r["source"] if r["source"] == "paper" else f"{r['source']}/{r['scale']}"
-            body.append([r["model"], r["dataset"], src, *(fmt_value(r["metrics"].get(m), m) for m in metrics)])
+            body.append(
+                [
+                    r["model"],
+                    r["dataset"],
+                    src,
+                    *(fmt_value(r["metrics"].get(m), m) for m in metrics),
+                ]
+            )
         widths = [max(len(str(x)) for x in col) for col in zip(header, *body, strict=True)]
-        fmt = "  ".join("{:<%d}" % w for w in widths)
+        fmt = "  ".join(f"{{:<{w}}}" for w in widths)
         lines.append(fmt.format(*header))
         lines.append(fmt.format(*("-" * w for w in widths)))
         lines.extend(fmt.format(*b) for b in body)

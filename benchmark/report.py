@@ -17,9 +17,8 @@ import re
 from pathlib import Path
 from typing import Any
 
-from scenefmt import atomic_write_bytes
-
 from benchmark.schema import METRIC_UNITS, REPORT_KIND, REPORT_SCHEMA_VERSION, validate_report
+from scenefmt import atomic_write_bytes
 
 __all__ = [
     "RowStore",
@@ -36,7 +35,7 @@ __all__ = [
 
 def utc_now() -> str:
     """Current UTC time as ``YYYY-MM-DDTHH:MM:SSZ``."""
-    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def dumps(obj: Any) -> str:

@@ -23,6 +23,7 @@ from typing import Any
 
 __all__ = ["SCALES", "ScaleSettings", "get_scale"]
 
+
 @dataclass(frozen=True)
 class ScaleSettings:
     """What one benchmark scale means.
@@ -75,12 +76,16 @@ SCALES: dict[str, ScaleSettings] = {
         test_scenes={"default": 2},
         render_samples=1,
         denoise=False,
-        train_steps=None,  # svorf's smoke train config (a few steps)
+        # A few steps of svorf's smoke train config (its default is 30); 10 keeps the
+        # 8-model ablation within minutes on 2 shared cores.
+        train_steps=10,
         speed_steps=3,
         speed_warmup=1,
         notes=(
-            "smoke checks the plumbing only: a few training steps on 4 scenes cannot "
-            "decompose a scene, so its metrics are at chance level by design.",
+            (
+                "smoke checks the plumbing only: a few training steps on 4 scenes cannot "
+                "decompose a scene, so its metrics are at chance level by design."
+            ),
         ),
     ),
     "cpu": ScaleSettings(
@@ -94,9 +99,11 @@ SCALES: dict[str, ScaleSettings] = {
         speed_steps=20,
         speed_warmup=3,
         notes=(
-            "cpu: 64x64 renders, 240 training scenes (400 for Room-Diverse), 50 test "
-            "scenes, the svorf 'cpu' model and training schedule (a 2-core machine, "
-            "hours per protocol).",
+            (
+                "cpu: 64x64 renders, 240 training scenes (400 for Room-Diverse), 50 test "
+                "scenes, the svorf 'cpu' model and training schedule (a 2-core machine, "
+                "hours per protocol)."
+            ),
         ),
     ),
     "paper": ScaleSettings(
@@ -109,9 +116,11 @@ SCALES: dict[str, ScaleSettings] = {
         speed_steps=50,
         speed_warmup=5,
         notes=(
-            "paper: the uORF split sizes (1000/500, Room-Diverse 5000/500) rendered at "
-            "256x256 (the paper's encoder input; svorf.data only down-samples) and the "
-            "paper's model and schedule; needs a GPU.",
+            (
+                "paper: the uORF split sizes (1000/500, Room-Diverse 5000/500) rendered at "
+                "256x256 (the paper's encoder input; svorf.data only down-samples) and the "
+                "paper's model and schedule; needs a GPU."
+            ),
         ),
     ),
 }

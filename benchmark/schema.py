@@ -32,7 +32,8 @@ Report layout (``schema_version`` ``REPORT_SCHEMA_VERSION``)::
 Rules beyond types: no NaN or infinity anywhere (a metric that cannot be
 computed is ``null`` and its reason is in ``null_reasons``); metric names come
 from :data:`METRIC_UNITS`; paper rows must equal the transcription in
-:mod:`benchmark.paper_numbers`; measured and baseline rows carry ``n_scenes``.
+:mod:`benchmark.paper_numbers`; measured and baseline rows carry ``n_scenes`` (or ``n_cases``), and a row of 0
+scenes has only null metrics.
 """
 
 from __future__ import annotations
@@ -84,6 +85,7 @@ METRIC_UNITS: dict[str, str] = {
     "render_s_per_view": "s",
     "max_abs_err_rgb": "unitless",
     "max_abs_err_depth": "world units",
+    "max_rel_err_depth": "unitless (relative to the largest sample distance)",
     "max_abs_err_acc": "unitless",
     "nonfinite_count": "count",
     "error": "unitless",
@@ -224,13 +226,17 @@ def _check_row(row: Any, where: str, problems: list[str]) -> None:
         problems.append(f"{where}.metrics: empty")
     for name, value in metrics.items():
         if name not in METRIC_UNITS:
-            problems.append(f"{where}.metrics.{name}: unknown metric (known: {sorted(METRIC_UNITS)})")
+            problems.append(
+                f"{where}.metrics.{name}: unknown metric (known: {sorted(METRIC_UNITS)})"
+            )
         if value is None:
             reason = reasons.get(name)
             if not isinstance(reason, str) or not reason:
                 problems.append(f"{where}.metrics.{name}: null without a reason in null_reasons")
         elif not _is_type(value, float):
-            problems.append(f"{where}.metrics.{name}: expected number|null, got {type(value).__name__}")
+            problems.append(
+                f"{where}.metrics.{name}: expected number|null, got {type(value).__name__}"
+            )
     for name in reasons:
         if name not in metrics:
             problems.append(f"{where}.null_reasons.{name}: no such metric in the row")
@@ -253,9 +259,13 @@ def _check_row(row: Any, where: str, problems: list[str]) -> None:
         elif match[0]["metrics"] != metrics:
             problems.append(f"{where}.metrics: differ from benchmark.paper_numbers[{table!r}]")
     elif source in ("measured", "baseline"):
-        n = row.get("n_scenes")
-        if not _is_type(n, int) or n < 1:
-            problems.append(f"{where}.n_scenes: expected an int >= 1 for a {source} row, got {n!r}")
+        # How many scenes (or stress cases, or timed steps) the values summarise.
+        key = next((k for k in ("n_scenes", "n_cases") if k in row), "n_scenes")
+        n = row.get(key)
+        if not _is_type(n, int) or n < 0:
+            problems.append(f"{where}.{key}: expected an int >= 0 for a {source} row, got {n!r}")
+        elif n == 0 and any(v is not None for v in metrics.values()):
+            problems.append(f"{where}: {key} is 0 but some metrics are not null")
 
 
 def check_report(report: Any) -> list[str]:
@@ -278,7 +288,9 @@ def check_report(report: Any) -> list[str]:
     if report.get("kind") != REPORT_KIND:
         problems.append(f"report.kind: expected {REPORT_KIND!r}, got {report.get('kind')!r}")
     if report.get("protocol") not in PROTOCOLS:
-        problems.append(f"report.protocol: expected one of {PROTOCOLS}, got {report.get('protocol')!r}")
+        problems.append(
+            f"report.protocol: expected one of {PROTOCOLS}, got {report.get('protocol')!r}"
+        )
     if report.get("scale") not in SCALES:
         problems.append(f"report.scale: expected one of {SCALES}, got {report.get('scale')!r}")
     if report.get("status") not in ("complete", "partial"):
@@ -286,7 +298,9 @@ def check_report(report: Any) -> list[str]:
 
     git = report.get("git")
     if isinstance(git, dict):
-        _fields(git, {"commit": (str, type(None)), "dirty": (bool, type(None))}, "report.git", problems)
+        _fields(
+            git, {"commit": (str, type(None)), "dirty": (bool, type(None))}, "report.git", problems
+        )
         commit = git.get("commit")
         if isinstance(commit, str) and not _COMMIT_RE.match(commit):
             problems.append(f"report.git.commit: expected 40 hex digits, got {commit!r}")
@@ -304,7 +318,9 @@ def check_report(report: Any) -> list[str]:
             if isinstance(fp, str) and not _FINGERPRINT_RE.match(fp):
                 problems.append(f"{where}.fingerprint: expected 16-64 hex digits, got {fp!r}")
             if ds.get("source") not in DATA_SOURCES:
-                problems.append(f"{where}.source: expected one of {DATA_SOURCES}, got {ds.get('source')!r}")
+                problems.append(
+                    f"{where}.source: expected one of {DATA_SOURCES}, got {ds.get('source')!r}"
+                )
     for i, m in enumerate(report.get("models") or []):
         _fields(m, _MODEL_FIELDS, f"report.models[{i}]", problems)
     wall = report.get("wall_time_s")

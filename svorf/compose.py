@@ -70,6 +70,23 @@ class SlotGuidedComposer(nn.Module):
     def logits(self, gx: Tensor, slots: Tensor, valid: Tensor | None = None) -> Tensor:
         """D^a logits of every point against every slot.
 
+        Computes exactly what :meth:`logits_reference` computes (same parameters, same
+        function), refactored so that the per-point work is one small matmul and a softmax:
+        everything after the attention softmax is linear, so it folds into per-scene
+        matrices built from the K slots once per call:
+
+        - score_hj(x) = <q_h(x), k_hj> / sqrt(dh) with q = W_q gamma(x) + b_q
+          = gamma(x) . (W_q,h^T k_hj) / sqrt(dh) + <b_q,h, k_hj> / sqrt(dh);
+        - logit_k(x) = <a_z(z), a_s(s_k)> / sqrt(dim) = <z, u_k> + c_k with
+          u_k = W_az^T a_s(s_k) / sqrt(dim), c_k = <b_az, a_s(s_k)> / sqrt(dim), and
+          z = q + W_o attn + b_o, attn_h = sum_j att_hj v_hj, so
+          logit_k = gamma(x) . (W_q^T u_k) + <b_q + b_o, u_k> + c_k
+          + sum_h sum_j att_hj <v_hj, (W_o^T u_k)_h>.
+
+        Per point: gamma(x) [Cx] @ [Cx, H*K + K], a softmax over K per head, and
+        att [H*K] @ G [H*K, K]; no [P, comp_dim] activation is materialised (the reference
+        writes five). Measured 4-5x faster at cpu scale (fwd+bwd).
+
         Args:
             gx: gamma(x) [B, P, Cx], or [B, K, P, Cx] for per-slot points (object
                 transforms): then the logit of slot k is computed from slot k's own points.
@@ -78,6 +95,44 @@ class SlotGuidedComposer(nn.Module):
         Returns:
             logits [B, P, K] (float of the compute dtype).
         """
+        return self.logits_kp(gx, slots, valid).transpose(1, 2)
+
+    def logits_kp(self, gx: Tensor, slots: Tensor, valid: Tensor | None = None) -> Tensor:
+        """:meth:`logits` in slot-major layout [B, K, P] (how they are computed: softmaxes
+        over K run ~7x faster on CPU with the K axis outside the long point axis)."""
+        B, K, _ = slots.shape
+        per_slot = gx.dim() == 4
+        x = gx if per_slot else gx[:, None]  # [B, Kx, P, Cx]
+        Kx, P, Cx = x.shape[1], x.shape[2], x.shape[3]
+        H, dim = self.heads, self.q.out_features
+        dh = dim // H
+        kq = self.k(slots).view(B, K, H, dh) / math.sqrt(dh)
+        v = self.v(slots).view(B, K, H, dh)
+        s_a = self.a_s(slots) / math.sqrt(dim)  # [B, K, dim]
+        u = s_a @ self.a_z.weight  # [B, K, dim]: <a_z(z), s_a> = <z, u> + <b_az, s_a>
+        c = s_a @ self.a_z.bias + u @ (self.q.bias + self.o.bias)  # [B, K]
+        uo = (u @ self.o.weight).view(B, K, H, dh)  # <W_o attn, u> = <attn, W_o^T u>
+        g_t = torch.einsum("bjhd,bkhd->bkhj", v, uo).reshape(B, K, H * K)  # G^T
+        wq = self.q.weight.view(H, dh, Cx)
+        m_att = torch.einsum("hdc,bjhd->bhjc", wq, kq).reshape(B, H * K, Cx)
+        b_att = torch.einsum("hd,bjhd->bhj", self.q.bias.view(H, dh), kq).reshape(B, H * K)
+        m_log = torch.einsum("dc,bkd->bkc", self.q.weight, u)  # [B, K, Cx]
+        mat = torch.cat([m_att, m_log], dim=1)  # [B, H*K + K, Cx]
+        bias = torch.cat([b_att, c], dim=1)[..., None]  # [B, H*K + K, 1]
+        # Points on the last axis: [B, H*K + K, Kx*P] = mat @ gamma(x)^T (no copy of gx).
+        out = torch.baddbmm(bias, mat, x.reshape(B, Kx * P, Cx).transpose(1, 2))
+        scores = out[:, : H * K].reshape(B, H, K, Kx, P)
+        vmask = None if valid is None else valid.transpose(1, 2)[:, None, :, None, :]
+        att = masked_softmax(scores, vmask, dim=2).reshape(B, H * K, Kx * P)
+        logits = torch.baddbmm(out[:, H * K :], g_t.to(out.dtype), att.to(out.dtype))
+        logits = logits.view(B, K, Kx, P)
+        if per_slot:  # slot k's logit from slot k's points: the diagonal over (K, Kx)
+            return torch.diagonal(logits, dim1=1, dim2=2).transpose(1, 2)  # [B, K, P]
+        return logits[:, :, 0]
+
+    def logits_reference(self, gx: Tensor, slots: Tensor, valid: Tensor | None = None) -> Tensor:
+        """:meth:`logits` written as the paper describes it (test oracle): q = Linear(gamma(x)),
+        z = q + o(MHA(q, slots)), logits = <a_z(z), a_s(s_k)> / sqrt(dim)."""
         B, K, _ = slots.shape
         per_slot = gx.dim() == 4
         x = gx if per_slot else gx[:, None]  # [B, Kx, P, Cx]
@@ -92,13 +147,16 @@ class SlotGuidedComposer(nn.Module):
         att = masked_softmax(att, vmask).to(q.dtype)
         z = q + self.o(torch.einsum("bxphk,bkhd->bxphd", att, v).reshape(B, Kx, P, dim))
         logits = torch.einsum("bxpc,bkc->bxpk", self.a_z(z), self.a_s(slots)) / math.sqrt(dim)
-        if per_slot:  # slot k's logit from slot k's points: the diagonal over (Kx, K)
+        if per_slot:
             return torch.diagonal(logits, dim1=1, dim2=3)  # [B, P, K]
         return logits[:, 0]
 
     def forward(self, gx: Tensor, slots: Tensor, valid: Tensor | None = None) -> Tensor:
-        """Soft slot masks m [B, P, K] (float32, rows sum to 1 over valid slots)."""
-        return masked_softmax(self.logits(gx, slots, valid), valid)
+        """Soft slot masks m [B, P, K] (float32, rows sum to 1 over valid slots).
+
+        Returned as a transposed view of a contiguous [B, K, P] tensor (use ``reshape``)."""
+        vt = None if valid is None else valid.transpose(1, 2)  # [B, K, P|1]
+        return masked_softmax(self.logits_kp(gx, slots, valid), vt, dim=1).transpose(1, 2)
 
 
 def compose(sigma_k: Tensor, rgb_k: Tensor, m: Tensor) -> tuple[Tensor, Tensor]:

@@ -131,14 +131,34 @@ class ModelConfig:
     """Slots randomly masked off per scene per training step (packed-CLEVR-11 setting: 4 of 11).
     The background slot is never masked."""
 
-    # ---- speed knobs (DESIGN 8) ----
+    # ---- speed knobs (DESIGN 8; all off at paper scale, tolerances in tests/test_speed_knobs.py,
+    # speeds from ``python -m svorf.speedbench``) ----
     bf16_autocast: bool = False
-    """Run the per-point MLPs and composition under bfloat16 autocast; transmittance stays
-    float32."""
+    """Run the hypernetwork, the per-point MLPs and the composition under bfloat16 autocast
+    (on CPUs with AVX-512 BF16 / AMX the matmuls are faster and every activation is half the
+    bytes). gamma(x), the softmax over slots, the composed field, transmittance (log-space
+    cumulative sums), importance sampling and the connectivity loss stay float32. Off =
+    float32 everywhere (paper)."""
     fg_box: float | None = None
     """If set, foreground (object) fields are evaluated only inside [-fg_box, fg_box]^3 and
     have density 0 outside, where they are also left out of the composition (the background
-    slot owns that space). None = everywhere (paper)."""
+    slot owns that space). The out-of-box (point, slot) pairs are not computed at all.
+    A modelling choice as much as a speed knob: None = everywhere (paper)."""
+    slot_topk: int = 0
+    """Evaluate the object fields at each point only for the ``slot_topk`` slots with the
+    highest composition probability m (m comes from gamma(x) and the slots alone, before any
+    field is evaluated). The composition then uses m renormalised over the evaluated slots;
+    ``slot_probs`` still use the full m; slot k's density is 0 where it was not evaluated
+    (also in the connectivity loss). Values >= the number of used slots evaluate all. Per point, |rgb - rgb_full| <= 1 - M and
+    |sigma - sigma_full| <= (1 - M) max_k sigma_k, M = the evaluated slots' mass. Applies to
+    composition="slot_guided" only (the others need every slot's field first / mix fields):
+    ignored otherwise. 0 = all slots (paper)."""
+    slot_keep_mass: float = 1.0
+    """Adaptive form of ``slot_topk``: at each point evaluate the highest-m slots until their
+    mass M reaches ``slot_keep_mass`` (at least one slot), so the bound above holds with
+    1 - M <= 1 - slot_keep_mass everywhere. Combined with slot_topk: both limits apply. The
+    saving grows as m sharpens during training (at initialisation m is nearly uniform and
+    nearly every slot is kept). slot_guided only, ignored otherwise. 1.0 = off (paper)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "enc_blocks", tuple(int(b) for b in self.enc_blocks))
@@ -205,6 +225,15 @@ class ModelConfig:
                 f"object slot: 0 <= slot_mask_train <= num_slots-2={self.num_slots - 2}, "
                 f"got {self.slot_mask_train}"
             )
+        if self.slot_topk < 0:
+            raise ValueError(
+                f"ModelConfig.slot_topk must be >= 0 (0 or >= num_slots = all slots), "
+                f"got {self.slot_topk}"
+            )
+        if not 0.0 < self.slot_keep_mass <= 1.0:
+            raise ValueError(
+                f"ModelConfig.slot_keep_mass must be in (0, 1] (1 = off), got {self.slot_keep_mass}"
+            )
         if self.slot_attn_iters < 1:
             raise ValueError(
                 f"ModelConfig.slot_attn_iters must be >= 1, got {self.slot_attn_iters}"
@@ -254,7 +283,8 @@ def model_config(
     Args:
         scale: "paper" = the paper's sizes (ResNet34 + upsampling to 512 channels at 256x256
             input, 128-wide 4-layer object MLPs, 64+128 samples); "cpu" = a ~2.96M-parameter
-            model for 64x64 inputs with 16+16 samples inside the scene box; "smoke" = a tiny
+            model for 64x64 inputs with 16+16 samples inside the scene box and the speed knobs
+            that stay within their tolerances (bf16_autocast, slot_keep_mass=0.99); "smoke" = a tiny
             model for tests (forward+backward well under a second at 32x32).
         num_slots: K including the background slot (paper: 8 CLEVR-567, 5 Room-*, 11 packed).
         image_size: encoder input size; default 256 / 64 / 32 for paper / cpu / smoke.
@@ -290,6 +320,13 @@ def model_config(
             n_coarse=16,
             n_fine=16,
             clip_to_box=True,
+            # Speed knobs that pass their tolerance tests (tests/test_speed_knobs.py; speeds
+            # from `python -m svorf.speedbench --scale cpu`): bf16 matmuls/activations with
+            # float32 transmittance, and per point only the slots holding 99% of the
+            # composition mass (colour error <= 0.01 per point). Not on: slot_topk (top-2 of
+            # 8 keeps ~47% of the mass at initialisation) and fg_box (changes the model).
+            bf16_autocast=True,
+            slot_keep_mass=0.99,
         )
         size = 64
     elif scale == "smoke":

@@ -15,6 +15,14 @@ One forward pass (paper Fig. 1): E(I) (``encoder``) -> T(Z, E(I)) (``decoder``) 
 and colours, composed with the slot-guided masks m (``compose``) -> volume rendering with
 hierarchical sampling (``render``); the coarse pass uses the same network as the fine pass
 (one set of fields; the paper's parameter count leaves no room for a second hypernetwork).
+
+Per-point cost (DESIGN 8/9, issue 6): the slot masks m are computed first (they need only
+gamma(x) and the slots; the composer is folded into per-scene matrices, exactly), then the
+object fields are evaluated only at the (point, slot) pairs that matter: unmasked slots,
+foreground slots inside ``fg_box``, and with ``slot_topk`` / ``slot_keep_mass`` the slots
+holding most of each point's m (``field.ObjectFields.eval_pairs``). ``bf16_autocast`` runs
+the matmuls in bfloat16 with float32 transmittance. ``python -m svorf.speedbench`` measures
+every knob; their tolerances are tested in tests/test_speed_knobs.py.
 """
 
 from __future__ import annotations
@@ -58,6 +66,13 @@ class RenderOutput:
     slot_probs: Tensor | None
     connectivity: Tensor
     coarse_rgb: Tensor
+
+
+# Above this fraction of kept (point, slot) pairs the dense evaluation is faster than the
+# sparse one (gathers, scatters, tile padding). Measured at cpu scale, fwd+bwd of the fields
+# (fp32 / bf16): sparse 4-7x faster at 15% kept, 2-3x at 30%, about even at 85%, dense
+# 1.1x faster at 100%.
+_DENSE_ABOVE = 0.85
 
 
 @dataclass
@@ -251,10 +266,7 @@ class SVORF(nn.Module):
         with self._autocast(slots.device):
             params = self.fields.params(slots)
         inv = None if transforms is None else torch.linalg.inv(transforms)
-        # The background is the last used slot in every scene: foreground fields can then run
-        # on the in-box points only (fg_box fast path).
-        bg_last = bool(is_bg[:, -1].all()) and slots.shape[1] > 1
-        ctx = (slots, params, rays_o, rays_d, slot_mask, is_bg, bg_last, inv)
+        ctx = (slots, params, rays_o, rays_d, slot_mask, is_bg, inv)
 
         t_c = sample_stratified(near_r, far_r, R, cfg.n_coarse, perturb)
         q_c = self._query(ctx, t_c)
@@ -282,7 +294,7 @@ class SVORF(nn.Module):
 
     def _query(self, ctx, t: Tensor) -> _Query:
         """Composed field at samples t [B, R, N] of every ray."""
-        slots, params, rays_o, rays_d, slot_mask, is_bg, bg_last, inv = ctx
+        slots, params, rays_o, rays_d, slot_mask, is_bg, inv = ctx
         cfg = self.cfg
         B, R, N = t.shape
         K = slots.shape[1]
@@ -301,7 +313,6 @@ class SVORF(nn.Module):
         gd = gd[:, :, :, None].expand(B, Kx, R, N, gd.shape[-1]).reshape(B, Kx, P, -1)
 
         valid = None if slot_mask is None else slot_mask[:, None, :]  # [B, 1, K]
-        inside = None
         if cfg.fg_box is not None:
             inside = (xk.abs() <= cfg.fg_box).all(dim=-1)  # [B, Kx, P]
             fg_ok = (inside.expand(B, K, P) | is_bg[:, :, None]).transpose(1, 2)  # [B, P, K]
@@ -314,56 +325,85 @@ class SVORF(nn.Module):
                 sigma, rgb, m = sigma.float(), rgb.float(), a
                 # Connectivity for the mixed field: each slot's share of the density.
                 sigma_k = a.transpose(1, 2) * sigma[:, None]
+            elif cfg.composition == "slot_guided":
+                # m needs only gamma(x) and the slots: it is known before any field runs, so
+                # it can choose which (point, slot) pairs are worth evaluating.
+                m = self.composer(gx if inv is not None else gx[:, 0], slots, valid)
+                keep = self._select_slots(m, valid)
+                m_eval = m
+                if keep is not None and self._selects_by_m(K):
+                    # Renormalised over the evaluated slots: a partition of unity again.
+                    m_eval = m * keep
+                    m_eval = m_eval / m_eval.sum(dim=-1, keepdim=True).clamp_min(1e-30)
+                sigma_k, rgb_k = self._eval_slots(params, gx, gd, keep)
+                sigma, rgb = compose(sigma_k, rgb_k, m_eval)
             else:
-                sigma_k, rgb_k = self._eval_slots(params, gx, gd, inside, is_bg, bg_last)
-                if cfg.composition == "slot_guided":
-                    m = self.composer(gx if inv is not None else gx[:, 0], slots, valid)
-                    sigma, rgb = compose(sigma_k, rgb_k, m)
-                else:
-                    sigma, rgb, m = compose_density_weighted(sigma_k, rgb_k, valid)
+                keep = None if valid is None else valid.expand(B, P, K)
+                sigma_k, rgb_k = self._eval_slots(params, gx, gd, keep)
+                sigma, rgb, m = compose_density_weighted(sigma_k, rgb_k, valid)
         return _Query(
             sigma.view(B, R, N),
             rgb.view(B, R, N, 3),
             sigma_k.float().view(B, K, R, N),
-            m.float().view(B, R, N, K),
+            m.float().reshape(B, R, N, K),  # the composer's m is a [B, K, P] transpose
         )
 
-    def _eval_slots(self, params, gx, gd, inside, is_bg, bg_last):
-        """Per-slot fields [B, K, P], [B, K, P, 3]; foreground slots are 0 outside fg_box."""
+    def _selects_by_m(self, K: int) -> bool:
+        """Whether slot_topk / slot_keep_mass drop slots by m (slot_guided only)."""
+        cfg = self.cfg
+        return cfg.composition == "slot_guided" and (
+            0 < cfg.slot_topk < K or cfg.slot_keep_mass < 1.0
+        )
+
+    def _select_slots(self, m: Tensor, valid: Tensor | None) -> Tensor | None:
+        """(point, slot) pairs whose field is evaluated, [B, P, K] bool; None = all.
+
+        Valid pairs (unmasked slots; inside ``fg_box`` for foreground slots) that pass the
+        ``slot_topk`` / ``slot_keep_mass`` limits on the composition probabilities m [B, P, K].
+        """
+        cfg = self.cfg
+        K = m.shape[-1]
+        keep = None
+        if self._selects_by_m(K):
+            # Rank the slots of every point without a sort (sorting 8 values along the last
+            # axis is slow on CPU), on the slot-major [B, K, P] layout the composer produces:
+            # slot j is above slot k if m_j > m_k. Tied slots are all kept or all dropped
+            # together (never fewer kept than the limits ask).
+            mt = m.detach().float().transpose(1, 2)  # [B, K, P]
+            mj = mt[:, None, :, :]  # [B, 1, K(j), P]
+            above = mj > mt[:, :, None, :]  # [B, K(k), K(j), P]
+            keep_t = torch.ones_like(mt, dtype=torch.bool)
+            if cfg.slot_keep_mass < 1.0:
+                # Keep a slot while the mass of the slots above it is below the target (the
+                # top slot always stays; the kept mass reaches slot_keep_mass).
+                keep_t = (above * mj).sum(dim=2) < cfg.slot_keep_mass
+            if 0 < cfg.slot_topk < K:
+                keep_t = keep_t & (above.sum(dim=2) < cfg.slot_topk)
+            keep = keep_t.transpose(1, 2)  # [B, P, K]
+        if valid is not None:
+            keep = valid.expand_as(m) if keep is None else keep & valid
+        return keep
+
+    def _eval_slots(self, params, gx: Tensor, gd: Tensor, keep: Tensor | None):
+        """Per-slot fields sigma_k [B, K, P], rgb_k [B, K, P, 3] (float32).
+
+        keep: [B, P, K] bool or None; where False the field is 0 and (when few pairs are
+        kept) not computed at all (``ObjectFields.eval_pairs``). When most pairs are kept,
+        the dense batched evaluation is cheaper than gathering them: it is used and the
+        dropped pairs are zeroed, with the same result.
+        """
         fields = self.fields
-        B, Kx, P, Cx = gx.shape
-        K = params.num_slots
-        if inside is None:
+        if keep is None:
             sigma_k, rgb_k = fields.eval_fields(params, gx, gd)
             return sigma_k.float(), rgb_k.float()
-        if not (bg_last and Kx == 1):  # general path: evaluate everywhere, zero outside
+        sel = keep.transpose(1, 2)  # [B, K, P]
+        frac = float(sel.float().mean())
+        if frac > _DENSE_ABOVE:
             sigma_k, rgb_k = fields.eval_fields(params, gx, gd)
-            keep = inside.expand(B, K, P) | is_bg[:, :, None]
-            return sigma_k.float() * keep, rgb_k.float() * keep[..., None]
-        # Fast path: foreground slots only at the in-box points (padded to the largest count
-        # over scenes), the background slot everywhere.
-        inside = inside[:, 0]  # [B, P]
-        counts = inside.sum(dim=1)
-        pm = int(counts.max())
-        s_bg, c_bg = fields.eval_fields(params.select(slice(K - 1, K)), gx, gd)
-        s_fg = gx.new_zeros(B, K - 1, P, dtype=torch.float32)
-        c_fg = gx.new_zeros(B, K - 1, P, 3, dtype=torch.float32)
-        if pm == P:
-            s_fg, c_fg = fields.eval_fields(params.select(slice(0, K - 1)), gx, gd)
-        elif pm > 0:
-            order = torch.argsort((~inside).to(torch.int8), dim=1, stable=True)[:, :pm]
-            pad = torch.arange(pm, device=gx.device)[None] >= counts[:, None]
-            gx_in = gx[:, 0].gather(1, order[..., None].expand(-1, -1, Cx))[:, None]
-            gd_in = gd[:, 0].gather(1, order[..., None].expand(-1, -1, gd.shape[-1]))[:, None]
-            s_in, c_in = fields.eval_fields(params.select(slice(0, K - 1)), gx_in, gd_in)
-            dst = torch.where(pad, P, order)[:, None].expand(B, K - 1, pm)  # pads -> dummy P
-            s_fg = s_in.new_zeros(B, K - 1, P + 1).scatter(2, dst, s_in)[..., :P]
-            c_fg = c_in.new_zeros(B, K - 1, P + 1, 3).scatter(
-                2, dst[..., None].expand(-1, -1, -1, 3), c_in
-            )[:, :, :P]
-        sigma_k = torch.cat([s_fg.float(), s_bg.float()], dim=1)
-        rgb_k = torch.cat([c_fg.float(), c_bg.float()], dim=1)
-        return sigma_k, rgb_k
+            if frac == 1.0:
+                return sigma_k.float(), rgb_k.float()
+            return sigma_k.float() * sel, rgb_k.float() * sel[..., None]
+        return fields.eval_pairs(params, gx, gd, sel)
 
     # ------------------------------------------------------------------ training API
     def forward(self, images: Tensor, rays_o: Tensor, rays_d: Tensor, **kw) -> RenderOutput:

@@ -1,0 +1,61 @@
+"""Benchmark protocols (DESIGN section 6), one function each: ``fn(ctx) -> report path``.
+
+- ``segmentation``, ``nvs``, ``ablation``, ``generalization``: the paper's tables
+  (:mod:`.tables`).
+- ``speed``: training steps/s, peak memory and render time per view (:mod:`.speed`).
+- ``stability``: volume-rendering stress against a float64 reference (:mod:`.stability`).
+- ``tradeoff``: time-vs-error curves of the speed knobs; not implemented yet.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from benchmark.runner import Context
+
+__all__ = ["PROTOCOLS", "NotImplementedProtocol", "get_protocol"]
+
+
+class NotImplementedProtocol(NotImplementedError):
+    """A protocol named in DESIGN section 6 that has no implementation yet."""
+
+
+def _tradeoff(ctx: Context) -> Path:
+    raise NotImplementedProtocol(
+        "protocol 'tradeoff' (time-vs-error curves of every speed knob, DESIGN section 8) "
+        "is not implemented yet; implemented: segmentation, nvs, ablation, generalization, "
+        "speed, stability"
+    )
+
+
+def _lazy(module: str, name: str) -> Callable[[Context], Path]:
+    def run(ctx: Context) -> Path:
+        import importlib
+
+        return getattr(importlib.import_module(f"benchmark.protocols.{module}"), name)(ctx)
+
+    run.__name__ = name
+    return run
+
+
+#: Protocol name -> function. Every name of DESIGN section 6 is present.
+PROTOCOLS: dict[str, Callable[[Context], Path]] = {
+    "segmentation": _lazy("tables", "run_segmentation"),
+    "nvs": _lazy("tables", "run_nvs"),
+    "ablation": _lazy("tables", "run_ablation"),
+    "generalization": _lazy("tables", "run_generalization"),
+    "speed": _lazy("speed", "run_speed"),
+    "tradeoff": _tradeoff,
+    "stability": _lazy("stability", "run_stability"),
+}
+
+
+def get_protocol(name: str) -> Callable[[Context], Path]:
+    """The protocol function; ValueError naming the known protocols otherwise."""
+    try:
+        return PROTOCOLS[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown protocol {name!r}; choose one of {', '.join(PROTOCOLS)}"
+        ) from None

@@ -1,0 +1,239 @@
+"""The paper-table protocols: ``segmentation``, ``nvs``, ``ablation``, ``generalization``.
+
+Where this sits: each function declares the measured rows of its paper tables
+(model variant, training preset, test preset, metrics) and lets
+:func:`benchmark.runner.run_table_protocol` do the caching, training,
+evaluation and report writing; the figure functions here draw the PNGs.
+
+Test protocol everywhere (paper 4.1): view 0 of each test scene is the input,
+views 1-3 are the novel views.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from benchmark.figures import bar_chart, qualitative_grid
+from benchmark.paper_numbers import PAPER_TABLES
+from benchmark.runner import Context, MeasuredRow, ModelJob, run_table_protocol
+
+__all__ = ["run_ablation", "run_generalization", "run_nvs", "run_segmentation"]
+
+ROOM_AND_CLEVR = ("clevr567", "room-chair", "room-diverse")
+SEG_METRICS = ("nv_ari", "ari", "fg_ari", "nv_fg_ari", "ari_all", "fg_ari_all")
+NVS_METRICS = ("lpips", "ssim", "psnr", "depth_abs_rel", "depth_rmse")
+
+
+def _qualitative(
+    ctx: Context, state: dict[str, Any], pairs: list[tuple[ModelJob, str, str]]
+) -> list[str]:
+    """One grid per (model, test dataset) from the cached sample of the evaluation."""
+    names = []
+    for job, dataset, label in pairs:
+        rec = state["records"].get((job, dataset))
+        test = state["tests"].get(dataset)
+        if rec is None or test is None:
+            continue
+        s = ctx.sample(rec, test)
+        if s is None:
+            continue
+        fname = f"qualitative_{label}.png".replace("/", "_")
+        names.append(
+            qualitative_grid(
+                ctx.report_dir / fname,
+                f"{dataset} test scene 0 - sVORF {job.variant} trained on {job.train_preset} "
+                f"({ctx.scale} scale)",
+                s["gt_rgb"],
+                s["pred_rgb"],
+                s["pred_labels"],
+                s["gt_labels"],
+                s["pred_depth"],
+                s.get("gt_depth"),
+            )
+        )
+    return names
+
+
+def _bars(
+    ctx: Context,
+    rows: list[dict[str, Any]],
+    tables: list[str],
+    metrics: list[str],
+    fname: str,
+    title: str,
+) -> str:
+    """Measured vs paper bars per measured row, with that row's best chance baseline."""
+    groups = []
+    for r in rows:
+        if r["source"] != "measured" or r["table"] not in tables:
+            continue
+        paper = next(
+            (
+                p
+                for p in rows
+                if p["source"] == "paper"
+                and p["table"] == r["table"]
+                and p["model"] == r["model"]
+                and p["dataset"] == r["dataset"]
+            ),
+            None,
+        )
+        chance: dict[str, float] = {}
+        for b in rows:
+            if (
+                b["source"] == "baseline"
+                and b["table"] == r["table"]
+                and b["dataset"] == r["dataset"]
+            ):
+                for m in metrics:
+                    v = b["metrics"].get(m)
+                    if v is not None:
+                        chance[m] = max(chance.get(m, v), v)
+        label = r["model"] if len(tables) == 1 else f"{r['model']}\n[{r['table']}, {r['dataset']}]"
+        groups.append(
+            {
+                "label": label,
+                "paper": paper["metrics"] if paper else {},
+                "measured": r["metrics"],
+                "chance": chance,
+            }
+        )
+    return bar_chart(ctx.report_dir / fname, title, groups, metrics)
+
+
+# ---------------------------------------------------------------------- segmentation / nvs
+
+
+def _per_dataset_rows(table: str, metrics: tuple[str, ...]) -> list[MeasuredRow]:
+    return [MeasuredRow(table, "sVORF", ds, ModelJob("full", ds), metrics) for ds in ROOM_AND_CLEVR]
+
+
+def run_segmentation(ctx: Context) -> Path:
+    """Paper Table 1 (tab:seg): NV-ARI, ARI, FG-ARI on CLEVR-567, Room-Chair, Room-Diverse."""
+    measured = _per_dataset_rows("tab:seg", SEG_METRICS)
+
+    def figures(ctx: Context, rows: list[dict[str, Any]], state: dict[str, Any]) -> list[str]:
+        pairs = [(m.job, m.dataset, m.dataset) for m in measured]
+        return _qualitative(ctx, state, pairs) + [
+            _bars(
+                ctx,
+                rows,
+                ["tab:seg"],
+                ["nv_ari", "ari", "fg_ari"],
+                "bars_tab_seg.png",
+                f"tab:seg, measured ({ctx.scale}) vs paper",
+            )
+        ]
+
+    return run_table_protocol(ctx, ["tab:seg"], measured, figures)
+
+
+def run_nvs(ctx: Context) -> Path:
+    """Paper Table 3 (tab:nvs): LPIPS, SSIM, PSNR of novel views (plus depth errors)."""
+    measured = _per_dataset_rows("tab:nvs", NVS_METRICS)
+
+    def figures(ctx: Context, rows: list[dict[str, Any]], state: dict[str, Any]) -> list[str]:
+        pairs = [(m.job, m.dataset, m.dataset) for m in measured]
+        return _qualitative(ctx, state, pairs)
+
+    return run_table_protocol(ctx, ["tab:nvs"], measured, figures)
+
+
+# ---------------------------------------------------------------------- ablation
+
+
+ABLATION_TABLES = ["tab:ablation", "tab:supp_ablation"]
+
+
+def run_ablation(ctx: Context) -> Path:
+    """Paper tables tab:ablation and tab:supp_ablation on CLEVR-567 (NV-ARI, FG-ARI per row).
+
+    One model per variant (w/o NVS, w/o CR, density-weighted, w/o SA, w/o
+    hypernetwork, slot attention, Slot-Mixer, full); the full model's row appears
+    in both tables and is trained and evaluated once (caches).
+    """
+    measured = []
+    for table in ABLATION_TABLES:
+        for prow in PAPER_TABLES[table]["rows"]:
+            job = ModelJob(prow["variant"], "clevr567")
+            measured.append(
+                MeasuredRow(table, prow["model"], "clevr567", job, ("nv_ari", "fg_ari", "ari"))
+            )
+
+    def figures(ctx: Context, rows: list[dict[str, Any]], state: dict[str, Any]) -> list[str]:
+        out = [
+            _bars(
+                ctx,
+                rows,
+                ABLATION_TABLES,
+                ["nv_ari", "fg_ari"],
+                "bars_ablation.png",
+                f"Ablations on CLEVR-567: measured ({ctx.scale}) vs paper",
+            )
+        ]
+        return out + _qualitative(
+            ctx, state, [(ModelJob("full", "clevr567"), "clevr567", "full_clevr567")]
+        )
+
+    return run_table_protocol(ctx, ABLATION_TABLES, measured, figures)
+
+
+# ---------------------------------------------------------------------- generalization
+
+
+GENERALIZATION_TABLES = ["tab:ab_apparance", "tab:ab_num", "text:rgb_color"]
+
+
+def run_generalization(ctx: Context) -> Path:
+    """Paper 4.6: held-out appearance, packed-CLEVR-11 arrangement, grayscale (ARI, FG-ARI).
+
+    - tab:ab_apparance: ``sVORF`` trained on clevr567-heldout/train, tested on its
+      test split (only red cylinders and blue spheres); ``sVORF(567)`` = the model
+      trained on clevr567/train, tested on the same split.
+    - tab:ab_num: 11 slots with 4 masked off per training step, trained on
+      clevr567/train, tested on packed-clevr11/test with all 11 slots.
+    - text:rgb_color: the clevr567 model on clevr567-gray/test, and on the RGB
+      clevr567/test for comparison.
+    """
+    full567 = ModelJob("full", "clevr567")
+    metrics = ("ari", "fg_ari", "nv_ari")
+    measured = [
+        MeasuredRow(
+            "tab:ab_apparance",
+            "sVORF",
+            "clevr567-heldout",
+            ModelJob("full", "clevr567-heldout"),
+            metrics,
+        ),
+        MeasuredRow("tab:ab_apparance", "sVORF(567)", "clevr567-heldout", full567, metrics),
+        MeasuredRow(
+            "tab:ab_num",
+            "sVORF",
+            "packed-clevr11",
+            ModelJob("packed11", "clevr567"),
+            metrics,
+            note="11 slots, 4 randomly masked per training step; all 11 used at test",
+        ),
+        MeasuredRow("text:rgb_color", "sVORF (grayscale test)", "clevr567-gray", full567, metrics),
+        MeasuredRow("text:rgb_color", "sVORF (RGB test)", "clevr567", full567, metrics),
+    ]
+
+    def figures(ctx: Context, rows: list[dict[str, Any]], state: dict[str, Any]) -> list[str]:
+        out = [
+            _bars(
+                ctx,
+                rows,
+                GENERALIZATION_TABLES,
+                ["ari", "fg_ari"],
+                "bars_generalization.png",
+                f"Generalization: measured ({ctx.scale}) vs paper",
+            )
+        ]
+        pairs = [
+            (m.job, m.dataset, f"{m.dataset}_{m.job.variant}_{m.job.train_preset}")
+            for m in measured
+        ]
+        return out + _qualitative(ctx, state, pairs)
+
+    return run_table_protocol(ctx, GENERALIZATION_TABLES, measured, figures)

@@ -1,0 +1,709 @@
+"""The protocol engine: datasets -> cached models -> cached evaluations -> rows -> report.
+
+Where this sits: ``benchmark run NAME`` builds a :class:`Context` and calls the
+protocol's function (``benchmark.protocols``), which declares its rows with
+:class:`ModelJob` / :class:`MeasuredRow` and hands them to :func:`run_table_protocol`.
+
+Caching and resume (all writes atomic):
+
+- models: ``<out>/runs/<key>/`` with ``key = hash(dataset fingerprint, model config,
+  train config without bookkeeping fields, seed, adapter version)``. svorf writes its
+  checkpoints there and resumes an interrupted run; ``benchmark_run.json`` marks a
+  finished one, which any later protocol with the same key reuses.
+- evaluations: ``<out>/evals/<model key>-<test fingerprint>-<eval key>/result.json``
+  (+ ``sample.npz`` for the qualitative figure), shared by protocols.
+- rows: ``<out>/<protocol>-<scale>/rows/<row id>.json``; a rerun skips finished rows.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmark import adapter
+from benchmark.datasets import DatasetInfo, ensure_dataset
+from benchmark.evaluate import BASELINES, EvalResult, evaluate_baselines, evaluate_model
+from benchmark.generator_bridge import DatasetUnavailable
+from benchmark.metrics import lpips_weight_candidates
+from benchmark.paper_numbers import PAPER_TABLES, paper_rows
+from benchmark.report import RowStore, new_report, stable_hash, write_json, write_report
+from benchmark.scales import ScaleSettings, get_scale
+from scenefmt import atomic_write_bytes
+
+__all__ = [
+    "Context",
+    "MeasuredRow",
+    "ModelJob",
+    "ModelRecord",
+    "row_id",
+    "run_table_protocol",
+]
+
+#: TrainConfig fields that do not change what is learned (left out of the cache key).
+_BOOKKEEPING = ("device", "log_every", "ckpt_every", "eval_every", "eval_scenes")
+
+
+@dataclass(frozen=True)
+class ModelJob:
+    """One model to train: a config variant on a training preset."""
+
+    variant: str
+    train_preset: str
+
+
+@dataclass(frozen=True)
+class MeasuredRow:
+    """A measured row of a paper table.
+
+    Attributes:
+        table: paper table id (``tab:ablation``...).
+        model: the row's model name, as printed in the paper.
+        dataset: the test preset.
+        job: the model scored.
+        metrics: metrics shown in the row (paper's columns first).
+        baseline_metrics: metrics of the chance rows added for this table.
+    """
+
+    table: str
+    model: str
+    dataset: str
+    job: ModelJob
+    metrics: tuple[str, ...]
+    note: str = ""
+
+
+@dataclass
+class ModelRecord:
+    """A trained model (run folder) and what it took."""
+
+    key: str
+    run_dir: Path
+    job: ModelJob
+    train_dataset: DatasetInfo
+    model_config: dict[str, Any]
+    train_config: dict[str, Any]
+    seed: int
+    reused: bool
+    train_wall_s: float
+    summary: dict[str, Any]
+
+    def to_report(self) -> dict[str, Any]:
+        return {
+            "run_key": self.key,
+            "run_dir": str(self.run_dir),
+            "variant": self.job.variant,
+            "train_dataset": self.train_dataset.name,
+            "train_dataset_fingerprint": self.train_dataset.fingerprint,
+            "model_config": self.model_config,
+            "train_config": self.train_config,
+            "seed": self.seed,
+            "reused": self.reused,
+            "train_wall_s": float(self.train_wall_s),
+            "summary": self.summary,
+        }
+
+
+def row_id(table: str, model: str, dataset: str, source: str) -> str:
+    """Stable id of a report row."""
+    return f"{table}|{model}|{dataset}|{source}"
+
+
+def _log(msg: str) -> None:
+    print(f"[benchmark] {msg}", file=sys.stderr, flush=True)
+
+
+class Context:
+    """Everything one protocol run shares: folders, scale, device, caches and timers.
+
+    Args:
+        protocol: protocol name.
+        scale: ``smoke`` / ``cpu`` / ``paper``.
+        out: the ``--out`` folder (reports, runs, evaluation cache).
+        data: the ``--data`` folder (datasets).
+        device: torch device string for training and evaluation.
+        data_source: ``generator`` or ``synthetic`` (see :mod:`benchmark.datasets`).
+        seed: base seed (data, training and evaluation seeds derive from it).
+        progress: show progress bars.
+        lpips_weights: optional LPIPS weight file.
+        train_steps: override of the scale's training steps (None = the scale's).
+    """
+
+    def __init__(
+        self,
+        protocol: str,
+        scale: str,
+        out: str | os.PathLike,
+        data: str | os.PathLike,
+        *,
+        device: str = "cpu",
+        data_source: str = "generator",
+        seed: int = 0,
+        progress: bool = True,
+        lpips_weights: str | None = None,
+        train_steps: int | None = None,
+    ) -> None:
+        self.protocol = protocol
+        self.settings: ScaleSettings = get_scale(scale)
+        self.scale = scale
+        self.out = Path(out)
+        self.data = Path(data)
+        self.device = device
+        self.data_source = data_source
+        self.seeds = {"data": int(seed), "train": int(seed), "eval": int(seed)}
+        self.progress = progress
+        self.lpips_weights = lpips_weights
+        self.train_steps = train_steps if train_steps is not None else self.settings.train_steps
+        self.report_dir = self.out / f"{protocol}-{scale}"
+        self.timers = {"data": 0.0, "training": 0.0, "evaluation": 0.0}
+        self.datasets: dict[tuple[str, str], DatasetInfo] = {}
+        self.models: dict[str, ModelRecord] = {}
+        self.notes: list[str] = []
+        self.t0 = time.perf_counter()
+
+    # ------------------------------------------------------------------ data
+
+    def dataset(self, preset: str, split: str) -> DatasetInfo:
+        """The split folder (generated if missing), timed under ``data``."""
+        k = (preset, split)
+        if k not in self.datasets:
+            t = time.perf_counter()
+            _log(f"dataset {preset}/{split} ({self.scale}, source {self.data_source})")
+            self.datasets[k] = ensure_dataset(
+                self.data,
+                self.settings,
+                preset,
+                split,
+                source=self.data_source,
+                seed=self.seeds["data"],
+                progress=self.progress,
+            )
+            self.timers["data"] += time.perf_counter() - t
+        return self.datasets[k]
+
+    # ------------------------------------------------------------------ models
+
+    def configs(self, job: ModelJob) -> tuple[Any, Any]:
+        mcfg = adapter.model_config(self.scale, job.train_preset, job.variant)
+        tcfg = adapter.train_config(
+            self.scale,
+            job.train_preset,
+            job.variant,
+            self.seeds["train"],
+            self.device,
+            self.train_steps,
+        )
+        return mcfg, tcfg
+
+    def model(self, job: ModelJob, train: bool = True) -> ModelRecord | None:
+        """Train ``job`` or reuse the cached run with the same key (timed under ``training``).
+
+        With ``train=False`` only a finished cached run is returned (else None).
+        """
+        ds = self.dataset(job.train_preset, "train")
+        mcfg, tcfg = self.configs(job)
+        mdict, tdict = adapter.config_dict(mcfg), adapter.config_dict(tcfg)
+        key_src = {
+            "adapter": adapter.ADAPTER_VERSION,
+            "dataset": ds.fingerprint,
+            "model": mdict,
+            "train": {k: v for k, v in tdict.items() if k not in _BOOKKEEPING},
+            "seed": self.seeds["train"],
+        }
+        key = stable_hash(key_src)
+        if key in self.models:
+            return self.models[key]
+        run_dir = self.out / "runs" / key
+        marker = run_dir / "benchmark_run.json"
+        done = None
+        if marker.is_file():
+            try:
+                done = json.loads(marker.read_text())
+                if done.get("key_source") != json.loads(json.dumps(key_src)):
+                    done = None
+            except (OSError, ValueError):
+                done = None
+        if done is not None:
+            _log(f"model {job.variant} on {job.train_preset}: reusing run {key}")
+            rec = ModelRecord(
+                key,
+                run_dir,
+                job,
+                ds,
+                mdict,
+                tdict,
+                self.seeds["train"],
+                True,
+                float(done.get("train_wall_s", 0.0)),
+                done.get("summary", {}),
+            )
+        elif not train:
+            return None
+        else:
+            _log(
+                f"model {job.variant} on {job.train_preset}: training run {key} ({tdict.get('steps')} steps)"
+            )
+            t = time.perf_counter()
+            summary = adapter.train(ds.path, run_dir, mcfg, tcfg, progress=self.progress)
+            wall = time.perf_counter() - t
+            self.timers["training"] += wall
+            train_wall = summary.get("train_wall_s")
+            train_wall = float(train_wall) if isinstance(train_wall, (int, float)) else wall
+            write_json(
+                marker,
+                {
+                    "key": key,
+                    "key_source": key_src,
+                    "summary": summary,
+                    "train_wall_s": train_wall,
+                    "job": vars(job),
+                },
+            )
+            rec = ModelRecord(
+                key, run_dir, job, ds, mdict, tdict, self.seeds["train"], False, train_wall, summary
+            )
+        self.models[key] = rec
+        return rec
+
+    # ------------------------------------------------------------------ evaluation
+
+    def _lpips_available(self) -> bool:
+        return any(
+            p is not None and p.is_file() for _, p in lpips_weight_candidates(self.lpips_weights)
+        )
+
+    def _eval_dir(self, kind: str, test: DatasetInfo, extra: dict[str, Any]) -> Path:
+        ekey = stable_hash(
+            {
+                "adapter": adapter.ADAPTER_VERSION,
+                "input_view": 0,
+                "max_scenes": self.settings.eval_scenes,
+                "lpips": self._lpips_available(),
+                "seed": self.seeds["eval"],
+                **extra,
+            }
+        )
+        return self.out / "evals" / f"{kind}-{test.fingerprint[:16]}-{ekey}"
+
+    def evaluation(self, rec: ModelRecord, test: DatasetInfo) -> EvalResult:
+        """Score ``rec`` on ``test`` (cached on disk; timed under ``evaluation``)."""
+        d = self._eval_dir(rec.key, test, {})
+        cached = _read_eval(d)
+        if cached is not None:
+            return cached
+        _log(f"evaluating run {rec.key} ({rec.job.variant}) on {test.name}")
+        t = time.perf_counter()
+        ds = adapter.open_dataset(test.path, image_size=rec.model_config.get("image_size"))
+        model = adapter.load_model(rec.run_dir, device=self.device)
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(
+                total=len(ds)
+                if self.settings.eval_scenes is None
+                else min(len(ds), self.settings.eval_scenes),
+                desc=f"eval {test.preset}",
+                dynamic_ncols=True,
+            )
+        try:
+            res = evaluate_model(
+                model,
+                ds,
+                input_view=0,
+                max_scenes=self.settings.eval_scenes,
+                lpips_weights=self.lpips_weights,
+                progress=(lambda i, n: bar.update(1)) if bar is not None else None,
+            )
+        finally:
+            if bar is not None:
+                bar.close()
+        self.timers["evaluation"] += time.perf_counter() - t
+        _write_eval(d, res)
+        return res
+
+    def baselines(self, test: DatasetInfo, num_slots: int) -> dict[str, EvalResult]:
+        """Chance baselines on ``test`` (cached)."""
+        d = self._eval_dir("baselines", test, {"num_slots": num_slots})
+        out: dict[str, EvalResult] = {}
+        for name in BASELINES:
+            r = _read_eval(d / name)
+            if r is None:
+                break
+            out[name] = r
+        else:
+            return out
+        t = time.perf_counter()
+        ds = adapter.open_dataset(test.path)
+        res = evaluate_baselines(
+            ds,
+            num_slots,
+            input_view=0,
+            max_scenes=self.settings.eval_scenes,
+            seed=self.seeds["eval"],
+            lpips_weights=self.lpips_weights,
+        )
+        self.timers["evaluation"] += time.perf_counter() - t
+        for name, r in res.items():
+            _write_eval(d / name, r)
+        return res
+
+    def sample(self, rec: ModelRecord, test: DatasetInfo) -> dict[str, np.ndarray] | None:
+        """Arrays of the first test scene of an evaluation (for the qualitative figure)."""
+        p = self._eval_dir(rec.key, test, {}) / "sample.npz"
+        if not p.is_file():
+            return None
+        with np.load(p) as z:
+            return {k: z[k] for k in z.files}
+
+    # ------------------------------------------------------------------ report
+
+    def base_report(self) -> dict[str, Any]:
+        rep = new_report(self.protocol, self.scale, self.device)
+        rep["seeds"] = dict(self.seeds)
+        rep["scale_settings"] = {
+            "benchmark": self.settings.to_dict(),
+            "train_steps_override": self.train_steps,
+            "data_source": self.data_source,
+        }
+        return rep
+
+    def finish(self, report: dict[str, Any]) -> Path:
+        """Fill datasets/models/wall times, validate, write ``report.json`` and ``index.html``."""
+        from benchmark.html import write_index
+
+        report["datasets"] = [d.to_report() for d in self.datasets.values()]
+        report["models"] = [m.to_report() for m in self.models.values()]
+        if self.data_source == "synthetic":
+            self.notes.append(
+                "Datasets are svorf.synthetic analytic sphere scenes (a stand-in for the "
+                "Blender presets, used for tests); numbers are not comparable to the paper."
+            )
+        report["notes"] = list(dict.fromkeys(report.get("notes", []) + self.notes))
+        report["wall_time_s"] = {
+            **{k: round(v, 3) for k, v in self.timers.items()},
+            "total": round(time.perf_counter() - self.t0, 3),
+        }
+        path = self.report_dir / "report.json"
+        write_report(path, report)
+        write_index(self.report_dir, report)
+        _log(f"report: {path}")
+        _log(f"page:   {self.report_dir / 'index.html'}")
+        return path
+
+
+def _read_eval(d: Path) -> EvalResult | None:
+    try:
+        return EvalResult.from_json(json.loads((d / "result.json").read_text()))
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _write_eval(d: Path, res: EvalResult) -> None:
+    d.mkdir(parents=True, exist_ok=True)
+    if res.sample is not None:
+        import io
+
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **res.sample)
+        atomic_write_bytes(d / "sample.npz", buf.getvalue())
+    write_json(d / "result.json", res.to_json())  # written last: marks the entry complete
+
+
+# ---------------------------------------------------------------------- table protocols
+
+
+def _measured_row(
+    spec: MeasuredRow, rec: ModelRecord, test: DatasetInfo, res: EvalResult
+) -> dict[str, Any]:
+    metrics = {m: res.metrics.get(m) for m in spec.metrics}
+    reasons = {m: res.null_reasons.get(m, "not_computed") for m, v in metrics.items() if v is None}
+    row = {
+        "id": row_id(spec.table, spec.model, spec.dataset, "measured"),
+        "table": spec.table,
+        "model": spec.model,
+        "dataset": spec.dataset,
+        "variant": spec.job.variant,
+        "source": "measured",
+        "metrics": metrics,
+        "null_reasons": reasons,
+        "n_scenes": res.n_scenes,
+        "nan_counts": {m: res.nan_counts.get(m, 0) for m in spec.metrics if m in res.nan_counts},
+        "run_key": rec.key,
+        "train_dataset": rec.train_dataset.name,
+        "test_dataset": test.name,
+        "test_fingerprint": test.fingerprint,
+        "eval_wall_s": round(res.wall_s, 3),
+    }
+    if spec.note:
+        row["note"] = spec.note
+    if res.details:
+        row["details"] = res.details
+    return row
+
+
+def _unavailable_row(spec: MeasuredRow, why: str) -> dict[str, Any]:
+    reason = "dataset_unavailable: " + why[:300]
+    return {
+        "id": row_id(spec.table, spec.model, spec.dataset, "measured"),
+        "table": spec.table,
+        "model": spec.model,
+        "dataset": spec.dataset,
+        "variant": spec.job.variant,
+        "source": "measured",
+        "metrics": {m: None for m in spec.metrics},
+        "null_reasons": {m: reason for m in spec.metrics},
+        "n_scenes": 0,
+        "train_dataset": f"{spec.job.train_preset}/train",
+    }
+
+
+def _baseline_rows(
+    table: str, dataset: str, metrics: tuple[str, ...], res: dict[str, EvalResult]
+) -> list[dict[str, Any]]:
+    rows = []
+    image = {"psnr", "ssim", "lpips"}
+    for name, label in BASELINES.items():
+        if name == "median_colour":
+            keep = tuple(m for m in metrics if m in image)
+        else:
+            keep = tuple(m for m in metrics if m not in image and not m.startswith("depth_"))
+        if not keep:
+            continue
+        r = res[name]
+        m = {k: r.metrics.get(k) for k in keep}
+        rows.append(
+            {
+                "id": row_id(table, label, dataset, "baseline"),
+                "table": table,
+                "model": label,
+                "dataset": dataset,
+                "variant": None,
+                "source": "baseline",
+                "metrics": m,
+                "null_reasons": {
+                    k: r.null_reasons.get(k, "not_computed") for k, v in m.items() if v is None
+                },
+                "n_scenes": r.n_scenes,
+            }
+        )
+    return rows
+
+
+def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[dict[str, Any]]:
+    """Say plainly, per measured row with FG-ARI, whether the model decomposes scenes."""
+    out = []
+    for r in rows:
+        if r["source"] != "measured" or "fg_ari" not in r["metrics"]:
+            continue
+        fg = r["metrics"]["fg_ari"]
+        chance = [
+            b["metrics"].get("fg_ari")
+            for b in rows
+            if b["source"] == "baseline"
+            and b["table"] == r["table"]
+            and b["dataset"] == r["dataset"]
+            and b["metrics"].get("fg_ari") is not None
+        ]
+        best = max(chance) if chance else None
+        paper = [
+            p["metrics"].get("fg_ari")
+            for p in rows
+            if p["source"] == "paper"
+            and p["table"] == r["table"]
+            and p["dataset"] == r["dataset"]
+            and p["model"] == r["model"]
+        ]
+        paper_txt = f"; paper {paper[0]:.1f}" if paper and paper[0] is not None else ""
+        if fg is None:
+            out.append(
+                {
+                    "table": r["table"],
+                    "dataset": r["dataset"],
+                    "model": r["model"],
+                    "decomposes": None,
+                    "message": "FG-ARI could not be computed ("
+                    + r["null_reasons"].get("fg_ari", "?")
+                    + ")",
+                }
+            )
+            continue
+        ok = fg >= settings.decompose_threshold and (
+            best is None or fg >= best + settings.decompose_margin
+        )
+        chance_txt = (
+            f"best chance baseline {best:.1f}" if best is not None else "no chance baseline"
+        )
+        if ok:
+            msg = f"decomposes: FG-ARI {fg:.1f} vs {chance_txt}{paper_txt}."
+        else:
+            msg = (
+                f"does NOT decompose at scale '{settings.name}': FG-ARI {fg:.1f} vs {chance_txt}"
+                f"{paper_txt} (threshold: FG-ARI >= {settings.decompose_threshold:.0f} and "
+                f">= chance + {settings.decompose_margin:.0f})."
+            )
+        out.append(
+            {
+                "table": r["table"],
+                "dataset": r["dataset"],
+                "model": r["model"],
+                "decomposes": ok,
+                "fg_ari": fg,
+                "chance_fg_ari": best,
+                "message": msg,
+            }
+        )
+    return out
+
+
+def run_table_protocol(
+    ctx: Context,
+    tables: list[str],
+    measured: list[MeasuredRow],
+    figures: Callable[[Context, list[dict[str, Any]], dict[str, Any]], list[str]] | None = None,
+) -> Path:
+    """Run a protocol made of paper tables: train/evaluate every measured row, write the report.
+
+    Args:
+        ctx: the run context.
+        tables: paper table ids whose paper rows go into the report.
+        measured: the measured rows (one model evaluation each; models and
+            evaluations are shared through the caches).
+        figures: ``fn(ctx, rows, state) -> [file names]`` drawing into ``ctx.report_dir``.
+
+    Returns:
+        Path of the written ``report.json``.
+    """
+    for t in tables:
+        if t not in PAPER_TABLES:
+            raise ValueError(f"unknown paper table {t!r}")
+    report = ctx.base_report()
+    store_ctx = {
+        "scale": ctx.scale,
+        "settings": ctx.settings.to_dict(),
+        "source": ctx.data_source,
+        "seeds": ctx.seeds,
+        "adapter": adapter.ADAPTER_VERSION,
+        "train_steps": ctx.train_steps,
+        "lpips": ctx._lpips_available(),
+    }
+    store = RowStore(ctx.report_dir / "rows", store_ctx)
+    rows: list[dict[str, Any]] = []
+    for t in tables:
+        rows.extend(paper_rows(t))
+    state: dict[str, Any] = {"records": {}, "tests": {}}
+    skipped = 0
+    unavailable: list[str] = []
+    for spec in measured:
+        rid = row_id(spec.table, spec.model, spec.dataset, "measured")
+        try:
+            test = ctx.dataset(spec.dataset, "test")
+            ctx.dataset(spec.job.train_preset, "train")
+        except DatasetUnavailable as err:
+            _log(f"row {spec.table} / {spec.model} / {spec.dataset}: dataset unavailable: {err}")
+            unavailable.append(f"{spec.table} / {spec.model} / {spec.dataset}: {err}")
+            rows.append(_unavailable_row(spec, str(err)))
+            continue
+        state["tests"][spec.dataset] = test
+        stored = store.get(rid)
+        if stored is not None and stored.get("test_fingerprint") == test.fingerprint:
+            _log(f"row done, skipped: {spec.table} / {spec.model} / {spec.dataset}")
+            skipped += 1
+            rows.append(stored)
+            # Keep the model in the report if its run is still on disk (never retrain here).
+            rec = ctx.model(spec.job, train=False)
+            if rec is not None:
+                state["records"][(spec.job, spec.dataset)] = rec
+            continue
+        rec = ctx.model(spec.job)
+        res = ctx.evaluation(rec, test)
+        row = _measured_row(spec, rec, test, res)
+        store.put(row)
+        rows.append(row)
+        state["records"][(spec.job, spec.dataset)] = rec
+    # Chance baselines per (table, test dataset), with the slot count of that table's models.
+    seen = set()
+    for spec in measured:
+        k = (spec.table, spec.dataset)
+        if k in seen:
+            continue
+        seen.add(k)
+        test = state["tests"].get(spec.dataset)
+        if test is None:
+            continue
+        k_slots = int(ctx.configs(spec.job)[0].num_slots)
+        metrics = tuple(
+            dict.fromkeys(m for s in measured if (s.table, s.dataset) == k for m in s.metrics)
+        )
+        rows.extend(_baseline_rows(spec.table, spec.dataset, metrics, ctx.baselines(test, k_slots)))
+    if unavailable:
+        report["status"] = "partial"
+        ctx.notes.append(
+            "Rows without data (metrics null, reason 'dataset_unavailable'): "
+            + "; ".join(unavailable)
+        )
+    if skipped:
+        ctx.notes.append(
+            f"{skipped} measured row(s) were finished by an earlier invocation and reused."
+        )
+    # Order: by table, then paper / measured / baseline, keeping declaration order within.
+    order = {t: i for i, t in enumerate(tables)}
+    src = {"paper": 0, "measured": 1, "baseline": 2}
+    rows.sort(key=lambda r: (order.get(r["table"], 99), src[r["source"]]))
+    report["rows"] = rows
+    report["verdicts"] = verdicts_for(rows, ctx.settings)
+    for r in rows:
+        psnr = r["metrics"].get("psnr") if r["source"] == "measured" else None
+        flat = next(
+            (
+                b["metrics"].get("psnr")
+                for b in rows
+                if b["source"] == "baseline"
+                and b["table"] == r["table"]
+                and b["dataset"] == r["dataset"]
+                and b["metrics"].get("psnr") is not None
+            ),
+            None,
+        )
+        if psnr is not None and flat is not None:
+            word = "above" if psnr > flat + 1.0 else "NOT clearly above (within 1 dB or below)"
+            ctx.notes.append(
+                f"{r['table']} / {r['model']} / {r['dataset']}: novel-view PSNR {psnr:.2f} dB is "
+                f"{word} the flat median-colour baseline {flat:.2f} dB."
+            )
+    judged = [v for v in report["verdicts"] if v["decomposes"] is not None]
+    if judged:
+        n_ok = sum(v["decomposes"] for v in judged)
+        head = (
+            f"At scale '{ctx.scale}' NO measured model decomposes the scenes"
+            if n_ok == 0
+            else f"At scale '{ctx.scale}' {n_ok} of {len(judged)} measured rows decompose the scenes"
+        )
+        ctx.notes.insert(
+            0,
+            f"{head} (criterion: FG-ARI >= {ctx.settings.decompose_threshold:.0f} and >= the best "
+            f"chance baseline on the same test set + {ctx.settings.decompose_margin:.0f}; see verdicts).",
+        )
+    lp = [r for r in rows if r["null_reasons"].get("lpips") == "lpips_unavailable"]
+    if lp:
+        why = next(
+            (r.get("details", {}).get("lpips") for r in lp if r.get("details", {}).get("lpips")),
+            None,
+        )
+        ctx.notes.append("LPIPS is null: " + (why or "AlexNet LPIPS weights not found locally."))
+    if figures is not None:
+        report["figures"] = figures(ctx, rows, state)
+    ctx.notes.extend(ctx.settings.notes)
+    return ctx.finish(report)
+
+
+def finite(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)

@@ -1,0 +1,478 @@
+"""Speed of a training step for each speed knob of ModelConfig (DESIGN 8, issue 6).
+
+Where it sits: a measuring tool beside the model (not used by training). It builds one model
+per variant (same weights), then times (a) forward + loss + backward of a batch like one
+training step (default 4 scenes x 256 rays, the cpu scale's) and (b) the per-point
+evaluation alone (hypernetwork, slot masks, object fields, composition at every sample,
+forward + backward), with the variants **interleaved** (repeat r runs every variant once, in
+turn), so that the load of other processes on a shared 2-core machine hits them alike; it
+reports medians and ratios to the code before issue 6 (``original``). It also reports, per
+variant, how far its evaluation render (no jitter, same weights, same rays) is from the
+knob-free model's: the time-vs-error pair of each knob; and, in a fresh subprocess per
+variant, the peak resident memory of a few training steps.
+
+Usage::
+
+    python -m svorf.speedbench --scale cpu [--repeats 7] [--json out.json] [--no-rss]
+
+Variants: ``original`` (every knob off and the composer in its paper form
+``SlotGuidedComposer.logits_reference``: the code before issue 6, the reference of every
+ratio), ``baseline`` (every knob off: the paper's method, with the exact folded composer),
+one per knob, ``all`` (every knob), ``default`` (what ``model_config(scale)`` turns on).
+The ``sharp-m`` variants scale the composition logits (x ``--sharpen``) in *both* the
+variant and its error reference ``sharp-m baseline``, to mimic a trained model whose slot
+masks m are nearly one-hot (at initialisation m is nearly uniform over the K slots); they
+show what top-k / keep-mass selection saves once slots own regions.
+
+Output JSON (``--json``): ``{"scale", "batch": {"scenes", "rays"}, "threads", "repeats",
+"torch", "time_reference", "config", "variants": [{"name", "overrides", "sharpen",
+"median_s", "steps_per_s", "ratio" (original median / this median), "ratio_vs_baseline",
+"query_s", "query_ratio" (per-point evaluation alone),
+"kept_pairs", "rgb_max_err", "rgb_mean_err", "depth_mean_err", "slot_probs_max_err",
+"peak_rss_mb"}]}``; times in seconds, errors in colour units [0, 1] / world units.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from .compose import masked_softmax
+from .config import ModelConfig, model_config
+from .model import SVORF
+from .render import clip_rays_to_box, sample_stratified
+
+# Every knob off: the paper's method at the scale's sizes.
+KNOBS_OFF: dict[str, Any] = {
+    "bf16_autocast": False,
+    "fg_box": None,
+    "slot_topk": 0,
+    "slot_keep_mass": 1.0,
+}
+
+
+@dataclass
+class Variant:
+    """One configuration to time: ``overrides`` on top of the scale's config with every knob
+    off; ``sharpen`` multiplies the composition logits (also in its reference baseline)."""
+
+    name: str
+    overrides: dict[str, Any]
+    sharpen: float = 1.0
+    reference: bool = False
+    """The knob-free model that errors of variants with the same ``sharpen`` are taken
+    against (the first reference of the list is also the time reference of every ratio)."""
+    paper_form_composer: bool = False
+    """Run the composer as written in the paper (``logits_reference``, softmax over the last
+    axis): the code path before the folded composer."""
+    times: list[float] = field(default_factory=list)
+    query_times: list[float] = field(default_factory=list)
+
+
+def default_variants(scale: str, sharpen: float = 8.0) -> list[Variant]:
+    """baseline, one variant per knob, all knobs, the scale's defaults, and sharp-m variants.
+
+    ``fg_box`` 3.0 is the foreground cube of CLEVR-like scenes (objects within |x|,|y| <= 3
+    and below z = 1.5) inside the +-4.5 scene box.
+    """
+    cfg = model_config(scale)  # type: ignore[arg-type]
+    defaults = {k: getattr(cfg, k) for k in KNOBS_OFF}
+    every = {"bf16_autocast": True, "fg_box": 3.0, "slot_topk": 2, "slot_keep_mass": 0.99}
+    out = [
+        Variant("original", {}, reference=True, paper_form_composer=True),
+        Variant("baseline", {}),
+        Variant("bf16", {"bf16_autocast": True}),
+        Variant("fg_box=3", {"fg_box": 3.0}),
+        Variant("topk=3", {"slot_topk": 3}),
+        Variant("topk=2", {"slot_topk": 2}),
+        Variant("keep_mass=0.99", {"slot_keep_mass": 0.99}),
+        Variant("all", every),
+        Variant("default", {k: v for k, v in defaults.items() if KNOBS_OFF[k] != v}),
+    ]
+    if sharpen != 1.0:
+        out += [
+            Variant("sharp-m baseline", {}, sharpen, reference=True),
+            Variant("sharp-m topk=2", {"slot_topk": 2}, sharpen),
+            Variant("sharp-m keep_mass=0.99", {"slot_keep_mass": 0.99}, sharpen),
+            Variant("sharp-m default", out[-1].overrides, sharpen),
+            Variant("sharp-m all", every, sharpen),
+        ]
+    return out
+
+
+def make_batch(cfg: ModelConfig, scenes: int, rays: int, seed: int = 0):
+    """Images [B, 3, S, S] in [0, 1], rays from ~11.7 units away into the scene box, targets."""
+    g = torch.Generator().manual_seed(seed)
+    s = cfg.image_size
+    images = torch.rand(scenes, 3, s, s, generator=g)
+    o = torch.tensor([0.0, -10.0, 6.0]).expand(scenes, rays, 3).clone()
+    o = o + 0.5 * torch.randn(scenes, 1, 3, generator=g)
+    target = (torch.rand(scenes, rays, 3, generator=g) - 0.5) * 2 * (cfg.box_half * 0.7)
+    d = F.normalize(target - o, dim=-1)
+    rgb = torch.rand(scenes, rays, 3, generator=g)
+    return images, o, d, rgb
+
+
+def build_model(scale: str, v: Variant, state: dict | None, seed: int = 0) -> SVORF:
+    """The variant's model with the shared weights ``state`` (or seed-initialised)."""
+    cfg = model_config(scale, **{**KNOBS_OFF, **v.overrides})  # type: ignore[arg-type]
+    torch.manual_seed(seed)
+    model = SVORF(cfg)
+    if state is not None:
+        model.load_state_dict(state)
+    comp = model.composer
+    if v.sharpen != 1.0 and comp is not None:
+        with torch.no_grad():  # logits = <a_z(z), a_s(s)>: scaling a_s scales every logit
+            comp.a_s.weight.mul_(v.sharpen)
+            comp.a_s.bias.mul_(v.sharpen)
+    if v.paper_form_composer and comp is not None:
+
+        def paper_form(gx, slots, valid=None):
+            return masked_softmax(comp.logits_reference(gx, slots, valid), valid)
+
+        comp.forward = paper_form  # type: ignore[method-assign]
+    return model.train()
+
+
+def make_query_step(model: SVORF, batch):
+    """A callable timing the per-point evaluation alone: hypernetwork, composition masks,
+    object fields and composition (``SVORF._query``) at every sample of the batch's rays,
+    forward + backward, with fixed slots; two queries (n_coarse then n_fine samples per ray)
+    as in a training step."""
+    images, o, d, _ = batch
+    cfg = model.cfg
+    with torch.no_grad():
+        slots = model.encode(images)
+    B, R = o.shape[:2]
+    near_r, far_r = clip_rays_to_box(o, d, cfg.near, cfg.far, cfg.box_half)
+    if not cfg.clip_to_box:
+        near_r, far_r = torch.full_like(near_r, cfg.near), torch.full_like(far_r, cfg.far)
+    g = torch.Generator().manual_seed(1)
+    ts = [
+        sample_stratified(near_r, far_r, R, n, True, generator=g)
+        for n in (cfg.n_coarse, cfg.n_fine)
+        if n
+    ]
+    is_bg = torch.zeros(B, slots.shape[1], dtype=torch.bool)
+    is_bg[:, -1] = True
+
+    def step() -> None:
+        with model._autocast(slots.device):
+            params = model.fields.params(slots)
+        total = 0.0
+        for t in ts:
+            q = model._query((slots, params, o, d, None, is_bg, None), t)
+            total = total + q.rgb.square().mean() + q.sigma.mean() + q.sigma_k.mean()
+        total.backward()
+        model.zero_grad(set_to_none=True)
+
+    return step
+
+
+def train_step(model: SVORF, batch) -> None:
+    """Forward, loss and backward of one batch (perturbed samples, as in training)."""
+    images, o, d, rgb = batch
+    out = model(images, o, d, perturb=True)
+    loss, _ = model.loss(out, rgb)
+    model.zero_grad(set_to_none=True)
+    loss.backward()
+
+
+class _KeptPairs:
+    """Counts the (point, slot) pairs a model evaluates (wraps ``SVORF._eval_slots``)."""
+
+    def __init__(self, model: SVORF) -> None:
+        self.kept = self.total = 0.0
+        inner = model._eval_slots
+
+        def wrapped(params, gx, gd, keep):
+            B, _, P, _ = gx.shape
+            K = params.num_slots
+            self.total += B * K * P
+            self.kept += B * K * P if keep is None else float(keep.sum())
+            return inner(params, gx, gd, keep)
+
+        model._eval_slots = wrapped  # type: ignore[method-assign]
+
+    @property
+    def fraction(self) -> float:
+        return self.kept / max(self.total, 1.0)
+
+
+@torch.no_grad()
+def render_errors(model: SVORF, ref: SVORF, batch) -> dict[str, float]:
+    """Difference of ``model``'s evaluation render from ``ref``'s on the batch's rays."""
+    images, o, d, _ = batch
+    model.eval()
+    ref.eval()
+    a = model(images, o, d)
+    b = ref(images, o, d)
+    model.train()
+    ref.train()
+    return {
+        "rgb_max_err": float((a.rgb - b.rgb).abs().max()),
+        "rgb_mean_err": float((a.rgb - b.rgb).abs().mean()),
+        "depth_mean_err": float((a.depth - b.depth).abs().mean()),
+        "slot_probs_max_err": float((a.slot_probs - b.slot_probs).abs().max()),
+    }
+
+
+def peak_rss_subprocess(scale: str, v: Variant, scenes: int, rays: int, threads: int) -> float:
+    """Peak RSS (MiB) of a fresh process that builds the variant and runs 3 steps."""
+    spec = json.dumps(
+        {
+            "scale": scale,
+            "name": v.name,
+            "overrides": v.overrides,
+            "sharpen": v.sharpen,
+            "paper_form_composer": v.paper_form_composer,
+            "scenes": scenes,
+            "rays": rays,
+            "threads": threads,
+        }
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "svorf.speedbench", "--_rss-worker", spec],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if res.returncode != 0:
+        raise RuntimeError(f"speedbench RSS worker for {v.name!r} failed:\n{res.stderr[-2000:]}")
+    return float(res.stdout.strip().splitlines()[-1])
+
+
+def _rss_worker(spec_json: str) -> None:
+    spec = json.loads(spec_json)
+    torch.set_num_threads(spec["threads"])
+    v = Variant(
+        spec["name"],
+        spec["overrides"],
+        spec["sharpen"],
+        paper_form_composer=spec["paper_form_composer"],
+    )
+    model = build_model(spec["scale"], v, None)
+    batch = make_batch(model.cfg, spec["scenes"], spec["rays"])
+    for _ in range(3):
+        train_step(model, batch)
+    print(_peak_rss_mb())
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process (MiB).
+
+    VmHWM of /proc/self/status where there is one: it belongs to this program's own address
+    space, whereas ru_maxrss also counts the parent's peak when the process was started by
+    vfork + exec (as subprocess does), which made every variant report the parent's peak.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0  # kB
+    except OSError:
+        pass
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    return rss / (1024.0 * 1024.0) if sys.platform == "darwin" else rss / 1024.0
+
+
+def run(
+    scale: str = "cpu",
+    *,
+    scenes: int = 4,
+    rays: int = 256,
+    repeats: int = 7,
+    warmup: int = 2,
+    threads: int = 2,
+    sharpen: float = 8.0,
+    rss: bool = True,
+    variants: list[Variant] | None = None,
+    log=print,
+) -> dict[str, Any]:
+    """Time every variant interleaved; return the JSON-able report (see module docstring)."""
+    torch.set_num_threads(threads)
+    variants = variants if variants is not None else default_variants(scale, sharpen)
+    state = build_model(scale, Variant("init", {}), None).state_dict()
+    models = [build_model(scale, v, state) for v in variants]
+    counters = [_KeptPairs(m) for m in models]
+    batch = make_batch(models[0].cfg, scenes, rays)
+    queries = [make_query_step(m, batch) for m in models]
+    for _ in range(warmup):
+        for m, q in zip(models, queries):
+            train_step(m, batch)
+            q()
+    for c in counters:
+        c.kept = c.total = 0.0
+    for r in range(repeats):
+        for v, m, q in zip(variants, models, queries):
+            t0 = time.perf_counter()
+            train_step(m, batch)
+            t1 = time.perf_counter()
+            q()
+            v.times.append(t1 - t0)
+            v.query_times.append(time.perf_counter() - t1)
+        log(f"repeat {r + 1}/{repeats}: " + " ".join(f"{v.times[-1]:.3f}" for v in variants))
+    refs: dict[float, SVORF] = {}  # error reference of each sharpen
+    for v, m in zip(variants, models):
+        if v.reference:
+            refs.setdefault(v.sharpen, m)
+    time_ref = next((v for v in variants if v.reference), variants[0])
+    ref_time = statistics.median(time_ref.times)
+    ref_qtime = statistics.median(time_ref.query_times)
+    base_time = next(
+        (statistics.median(v.times) for v in variants if v.name == "baseline"), ref_time
+    )
+    rows = []
+    for v, m, c in zip(variants, models, counters):
+        med = statistics.median(v.times)
+        ref = refs.get(v.sharpen, models[0])
+        row = {
+            "name": v.name,
+            "overrides": v.overrides,
+            "sharpen": v.sharpen,
+            "median_s": med,
+            "steps_per_s": 1.0 / med,
+            "ratio": ref_time / med,
+            "ratio_vs_baseline": base_time / med,
+            "query_s": statistics.median(v.query_times),
+            "query_ratio": ref_qtime / statistics.median(v.query_times),
+            "kept_pairs": c.fraction,
+            **render_errors(m, ref, batch),
+            "peak_rss_mb": None,
+        }
+        if rss:
+            row["peak_rss_mb"] = peak_rss_subprocess(scale, v, scenes, rays, threads)
+        rows.append(row)
+    return {
+        "scale": scale,
+        "time_reference": time_ref.name,
+        "batch": {"scenes": scenes, "rays": rays},
+        "threads": threads,
+        "repeats": repeats,
+        "torch": torch.__version__,
+        "config": dataclasses.asdict(model_config(scale)),  # type: ignore[arg-type]
+        "variants": rows,
+    }
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """Plain-text table of a :func:`run` report."""
+    head = (
+        f"{'variant':24s} {'steps/s':>8s} {'median s':>9s} {'ratio':>6s} {'vs base':>7s} "
+        f"{'query s':>8s} {'q ratio':>7s} "
+        f"{'pairs':>6s} {'rgb max':>8s} {'rgb mean':>9s} {'depth':>7s} {'m max':>7s} "
+        f"{'RSS MB':>7s}"
+    )
+    title = (
+        f"svorf.speedbench scale={report['scale']} batch={report['batch']['scenes']}x"
+        f"{report['batch']['rays']} rays, threads={report['threads']}, "
+        f"repeats={report['repeats']} (interleaved, medians), torch {report['torch']}"
+    )
+    lines = [
+        title,
+        head,
+        "-" * len(head),
+    ]
+    for r in report["variants"]:
+        rss = "-" if r["peak_rss_mb"] is None else f"{r['peak_rss_mb']:.0f}"
+        lines.append(
+            f"{r['name']:24s} {r['steps_per_s']:8.2f} {r['median_s']:9.3f} {r['ratio']:6.2f} "
+            f"{r['ratio_vs_baseline']:7.2f} {r['query_s']:8.3f} {r['query_ratio']:7.2f} "
+            f"{r['kept_pairs']:6.2f} {r['rgb_max_err']:8.4f} "
+            f"{r['rgb_mean_err']:9.5f} {r['depth_mean_err']:7.4f} "
+            f"{r['slot_probs_max_err']:7.4f} {rss:>7s}"
+        )
+    lines.append(
+        f"ratio: {report['time_reference']} median / variant median (>1 = faster); vs base: "
+        "the same against 'baseline'; query s / q ratio: the per-point evaluation alone "
+        "(hypernetwork, masks, fields, composition at all n_coarse + n_fine samples, fwd+bwd); "
+        "pairs: fraction of (point, slot) field evaluations kept (training steps); errors: eval render vs the knob-free model with the same weights (sharp-m "
+        "rows vs 'sharp-m baseline'): rgb max/mean |diff|, depth mean |diff| (world units), "
+        "m max: slot_probs max |diff|; RSS: peak of a fresh process running 3 steps."
+    )
+    return "\n".join(lines)
+
+
+def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m svorf.speedbench", description=__doc__.split("\n\n")[0]
+    )
+    ap.add_argument("--scale", default="cpu", choices=["smoke", "cpu", "paper"])
+    ap.add_argument("--scenes", type=int, default=4, help="scenes per step (B)")
+    ap.add_argument("--rays", type=int, default=256, help="rays per scene (R)")
+    ap.add_argument("--repeats", type=int, default=7, help="interleaved timed repeats")
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument(
+        "--sharpen",
+        type=float,
+        default=8.0,
+        help="logit scale of the sharp-m variants (1 = leave them out)",
+    )
+    ap.add_argument("--only", default="", help="comma-separated variant names to run")
+    ap.add_argument("--no-rss", action="store_true", help="skip the per-variant RSS subprocesses")
+    ap.add_argument("--json", type=Path, default=None, help="also write the report here")
+    ap.add_argument("--_rss-worker", dest="rss_worker", default=None, help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.rss_worker is not None:
+        _rss_worker(a.rss_worker)
+        return 0
+    for name in ("scenes", "rays", "repeats", "threads"):
+        if getattr(a, name) < 1:
+            ap.error(f"--{name} must be >= 1, got {getattr(a, name)}")
+    variants = default_variants(a.scale, a.sharpen)
+    if a.only:
+        wanted = [s.strip() for s in a.only.split(",") if s.strip()]
+        known = {v.name for v in variants}
+        bad = [w for w in wanted if w not in known]
+        if bad:
+            ap.error(f"--only: unknown variants {bad}; known: {sorted(known)}")
+        sharp = {v.sharpen for v in variants if v.name in wanted}
+        variants = [v for v in variants if v.name in wanted or (v.reference and v.sharpen in sharp)]
+        variants.sort(key=lambda v: not v.reference)  # references first
+    report = run(
+        a.scale,
+        scenes=a.scenes,
+        rays=a.rays,
+        repeats=a.repeats,
+        warmup=a.warmup,
+        threads=a.threads,
+        sharpen=a.sharpen,
+        rss=not a.no_rss,
+        variants=variants,
+    )
+    print(format_table(report))
+    if a.json is not None:
+        _write_json_atomic(a.json, report)
+        print(f"wrote {a.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
