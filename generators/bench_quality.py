@@ -62,10 +62,9 @@ def run(preset_name: str, n_scenes: int, resolution: int, ref_samples: int, thre
             views = sess.render_scene(s.with_render(settings))
             times += [v.render_s for v in views]
             psnrs += [psnr8(linear_to_srgb8(v.rgb_linear), r) for v, r in zip(views, ref, strict=True)]
-        rows.append(
-            {"label": label, "settings": asdict(settings), "s_per_view": float(np.mean(times)),
-             "psnr_db": float(np.mean(psnrs))}  # fmt: skip
-        )
+        row = {"label": label, "settings": asdict(settings), "s_per_view": float(np.mean(times)),
+               "psnr_db": float(np.mean(psnrs))}  # fmt: skip
+        rows.append(row)
         print(f"{label:24s} {np.mean(times):6.3f} s/view  {np.mean(psnrs):6.2f} dB", flush=True)
     sess.close()
     return rows

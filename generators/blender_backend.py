@@ -45,7 +45,8 @@ class BpyMissingError(ImportError):
 def import_bpy():
     """Import and return ``bpy``; :class:`BpyMissingError` with an install hint otherwise."""
     try:
-        import bpy  # noqa: PLC0415
+        with _quiet():  # Cycles prints a CUDA-loader warning on import
+            import bpy
     except ImportError as e:
         raise BpyMissingError(
             f"cannot import bpy ({e}); install Blender's Python module: pip install bpy==5.0.1 "
@@ -101,7 +102,7 @@ def read_multilayer_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
         ``{pass name: float32 [H, W, C]}`` keyed by the part's pass name, e.g.
         ``"Combined"`` (RGBA), ``"Depth"`` (Z), ``"Object Index"`` (X).
     """
-    import OpenImageIO as oiio  # noqa: N813
+    import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:

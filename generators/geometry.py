@@ -148,7 +148,7 @@ class TriMesh:
     faces: np.ndarray
     smooth: np.ndarray
 
-    def transformed(self, yaw_deg: float, translation, scale: float = 1.0) -> "TriMesh":
+    def transformed(self, yaw_deg: float, translation, scale: float = 1.0) -> TriMesh:
         """Scale, rotate about +z by ``yaw_deg``, then translate."""
         a = math.radians(yaw_deg)
         c, s = math.cos(a), math.sin(a)
@@ -191,7 +191,7 @@ def _icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
     for _ in range(subdivisions):
         cache: dict[tuple[int, int], int] = {}
 
-        def mid(a: int, b: int) -> int:
+        def mid(a: int, b: int, cache: dict[tuple[int, int], int] = cache) -> int:
             key = (a, b) if a < b else (b, a)
             if key not in cache:
                 p = verts[a] + verts[b]

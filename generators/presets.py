@@ -162,6 +162,43 @@ class GroundRules:
 
 
 @dataclass(frozen=True)
+class RoomRules:
+    """Room presets: procedural chairs on a textured floor, textured walls around.
+
+    Attributes:
+        n_chairs: inclusive (min, max) chairs per scene.
+        asset_pool: number of procedural chair ids to draw from (ids ``0..pool-1``).
+        same_shape: one chair id for all chairs of a scene (else distinct ids).
+        n_backgrounds: background ids ``0..n-1`` (``background_params`` -> floor, wall
+            texture ids).
+        chair_scale: uniform scale of the canonical chair (max horizontal extent 1.0).
+        room_half_size: walls stand at ``x, y = +-room_half_size`` (cameras inside).
+        wall_height: wall height (world units).
+        texture_tile: world units per texture repeat (box projection).
+        texture_size: texture image side in pixels.
+    """
+
+    n_chairs: tuple[int, int] = (3, 4)
+    asset_pool: int = 1
+    same_shape: bool = True
+    n_backgrounds: int = 3
+    chair_scale: float = 1.3
+    room_half_size: float = 11.0
+    wall_height: float = 6.0
+    texture_tile: float = 4.0
+    texture_size: int = 256
+
+    def __post_init__(self) -> None:
+        lo, hi = self.n_chairs
+        if not 1 <= lo <= hi:
+            raise ValueError(f"n_chairs must be 1 <= min <= max, got {self.n_chairs}")
+        if self.asset_pool < 1 or self.n_backgrounds < 1:
+            raise ValueError("asset_pool and n_backgrounds must be >= 1")
+        if not self.same_shape and self.asset_pool < hi:
+            raise ValueError(f"asset_pool {self.asset_pool} < {hi} distinct chairs per scene")
+
+
+@dataclass(frozen=True)
 class Preset:
     """One dataset recipe.
 
@@ -186,6 +223,7 @@ class Preset:
         num_slots: suggested slot count for models (objects + background).
         scene_source: preset whose scene sampling (and seeds) this preset reuses.
         grayscale: RGB is converted to Rec.601 luma, stored as 3 equal channels.
+        room: chairs-in-a-room rules (None = CLEVR objects on a plain ground).
     """
 
     name: str
@@ -205,6 +243,7 @@ class Preset:
     num_slots: int = 8
     scene_source: str | None = None
     grayscale: bool = False
+    room: RoomRules | None = None
 
     def split_names(self) -> tuple[str, ...]:
         return tuple(s for s, _ in self.splits)
@@ -225,7 +264,7 @@ class Preset:
                 return r
         return self.objects
 
-    def with_camera_radius(self, radius: float) -> "Preset":
+    def with_camera_radius(self, radius: float) -> Preset:
         """Copy with another camera radius (closer cameras for small CPU-scale datasets)."""
         if radius <= self.camera.radius_jitter:
             raise ValueError(f"camera_radius must exceed {self.camera.radius_jitter}, got {radius}")
@@ -286,6 +325,28 @@ register(
         splits=(("test", 500),),
         scene_source="clevr567",
         grayscale=True,
+    )
+)
+
+
+register(
+    Preset(
+        name="room-chair",
+        description="3-4 chairs of one procedural shape in a room, 3 floor/wall backgrounds",
+        splits=(("train", 1000), ("test", 500)),
+        room=RoomRules(n_chairs=(3, 4), asset_pool=1, same_shape=True, n_backgrounds=3),
+        min_gap=0.1,
+        num_slots=5,
+    )
+)
+register(
+    Preset(
+        name="room-diverse",
+        description="4 distinct chairs per scene from 1200 procedural shapes, 50 backgrounds",
+        splits=(("train", 5000), ("test", 500)),
+        room=RoomRules(n_chairs=(4, 4), asset_pool=1200, same_shape=False, n_backgrounds=50),
+        min_gap=0.1,
+        num_slots=5,
     )
 )
 

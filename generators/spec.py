@@ -108,7 +108,7 @@ class RenderSettings:
         }
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "RenderSettings":
+    def from_json(cls, d: dict[str, Any]) -> RenderSettings:
         return cls(
             resolution=int(d["width"]),
             samples=int(d["samples"]),
@@ -207,7 +207,7 @@ class ObjectSpec:
         return d
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "ObjectSpec":
+    def from_json(cls, d: dict[str, Any]) -> ObjectSpec:
         return cls(
             instance_id=int(d["instance_id"]),
             shape=d["shape"],
@@ -248,7 +248,7 @@ class LightSpec:
         }
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "LightSpec":
+    def from_json(cls, d: dict[str, Any]) -> LightSpec:
         return cls(
             name=d["name"],
             position=_vec(d["position"]),
@@ -284,7 +284,7 @@ class GroundSpec:
         }
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "GroundSpec":
+    def from_json(cls, d: dict[str, Any]) -> GroundSpec:
         return cls(
             size=float(d["size"]),
             color_linear=_vec(d["color_linear"]),
@@ -305,7 +305,7 @@ class WorldSpec:
         return {"color_linear": list(self.color_linear), "strength": self.strength}
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "WorldSpec":
+    def from_json(cls, d: dict[str, Any]) -> WorldSpec:
         return cls(_vec(d["color_linear"]), float(d["strength"]))
 
 
@@ -351,7 +351,7 @@ class ViewSpec:
         }
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "ViewSpec":
+    def from_json(cls, d: dict[str, Any]) -> ViewSpec:
         return cls(
             azimuth_deg=float(d["azimuth_deg"]),
             elevation_deg=float(d["elevation_deg"]),
@@ -398,7 +398,7 @@ class SceneSpec:
     def n_views(self) -> int:
         return len(self.views)
 
-    def with_render(self, render: RenderSettings) -> "SceneSpec":
+    def with_render(self, render: RenderSettings) -> SceneSpec:
         return replace(self, render=render)
 
     def meshes(self) -> tuple[list[geometry.TriMesh], list[int]]:
@@ -443,7 +443,7 @@ class SceneSpec:
         return d
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "SceneSpec":
+    def from_json(cls, d: dict[str, Any]) -> SceneSpec:
         known = {
             "format", "preset", "split", "index", "seed", "scene_seed", "attempt", "rng",
             "camera_convention", "depth", "world_up", "units", "objects", "materials",

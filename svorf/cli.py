@@ -32,8 +32,12 @@ def _parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("train", help="train a model on a generated split")
     t.add_argument("--data", required=True, help="training split folder (e.g. data/clevr567/train)")
-    t.add_argument("--preset", required=True, choices=sorted(PRESETS),
-                   help="training preset (sets the slot count; must match the data)")
+    t.add_argument(
+        "--preset",
+        required=True,
+        choices=sorted(PRESETS),
+        help="training preset (sets the slot count; must match the data)",
+    )
     t.add_argument("--scale", required=True, choices=SCALES, help="model and schedule size")
     t.add_argument("--out", required=True, help="run folder (checkpoint, logs)")
     t.add_argument("--steps", type=int, help="total optimizer steps (default: the scale's)")
@@ -65,20 +69,45 @@ class _UsageError(Exception):
     """A bad command-line input; printed as one line, exit status 2."""
 
 
-def _check_preset(preset: str, data: str) -> None:
+def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
+    """Fail fast (before building the model) on a data folder that cannot fit the run."""
     from scenefmt import read_json
     from svorf.train import PRESETS
 
-    manifest = Path(data) / "manifest.json"
+    root = Path(data)
+    if not root.is_dir():
+        raise _UsageError(f"--data {data}: not a directory (expected a generated split folder)")
+    manifest = root / "manifest.json"
     if not manifest.is_file():
-        return  # the dataset reader reports the missing file with its fix
-    found = read_json(manifest).get("preset")
+        raise _UsageError(
+            f"--data {data}: no manifest.json - not a generated split folder "
+            f"(run `generate verify {data}`)"
+        )
+    try:
+        meta = read_json(manifest)
+    except (OSError, ValueError) as e:
+        raise _UsageError(f"{manifest}: unreadable JSON ({e}); run `generate verify {data}`") from e
+    found = meta.get("preset")
     wanted = PRESETS[preset].data_presets
     if found not in wanted:
         raise _UsageError(
             f"--preset {preset} trains on {'/'.join(wanted)} data, but {data} holds "
-            f"preset {found!r}"
+            f"preset {found!r} (pass --preset {_preset_for(found)})"
         )
+    res = meta.get("resolution")
+    if isinstance(res, (list, tuple)) and len(res) == 2 and min(int(r) for r in res) < image_size:
+        raise _UsageError(
+            f"--scale {scale} trains at {image_size}x{image_size} but {data} holds "
+            f"{res[0]}x{res[1]} images; pass --image-size {min(int(r) for r in res)} or "
+            f"regenerate with --resolution {image_size}"
+        )
+
+
+def _preset_for(data_preset: object) -> str:
+    from svorf.train import PRESETS
+
+    names = [k for k, v in PRESETS.items() if data_preset in v.data_presets]
+    return names[0] if names else "<one of " + ", ".join(sorted(PRESETS)) + ">"
 
 
 def _cmd_train(a: argparse.Namespace) -> int:
@@ -88,7 +117,14 @@ def _cmd_train(a: argparse.Namespace) -> int:
     overrides = {k: v for k, v in (("steps", a.steps), ("seed", a.seed), ("device", a.device))
                  if v is not None}  # fmt: skip
     mcfg, tcfg = run_configs(a.scale, a.preset, image_size=a.image_size, **overrides)
-    _check_preset(a.preset, a.data)
+    _check_data(a.data, a.preset, a.scale, mcfg.image_size)
+    if a.max_scenes is not None and a.max_scenes < 1:
+        raise _UsageError(f"--max-scenes must be >= 1, got {a.max_scenes}")
+    if a.resume:  # a corrupt checkpoint is reported before any data is loaded
+        from svorf.train import CHECKPOINT_NAME, _read_checkpoint
+
+        if (Path(a.out) / CHECKPOINT_NAME).exists():
+            _read_checkpoint(Path(a.out) / CHECKPOINT_NAME)
     n = SVORF(mcfg).count_parameters()
     print(f"svorf train: scale {a.scale}, preset {a.preset}, K={mcfg.num_slots}, "
           f"image {mcfg.image_size}, {n:,} parameters, {tcfg.steps} steps", flush=True)  # fmt: skip
@@ -103,14 +139,18 @@ def _cmd_render(a: argparse.Namespace) -> int:
     from svorf.train import load_run, predict_scene, resolve_device
     from svorf.viz import save_scene_figures
 
-    device = resolve_device(a.device)
-    model, info = load_run(a.run, device=device)
     if a.scene < 0:
         raise _UsageError(f"--scene must be >= 0, got {a.scene}")
-    ds = MultiViewDataset(a.data, image_size=info.model.image_size, max_scenes=a.scene + 1)
-    if a.scene not in ds.scene_ids:
-        raise _UsageError(f"{a.data}: no scene sc{a.scene:04d}")
-    pos = ds.scene_ids.index(a.scene)
+    if a.chunk < 1:
+        raise _UsageError(f"--chunk must be >= 1, got {a.chunk}")
+    device = resolve_device(a.device)
+    model, info = load_run(a.run, device=device)
+    # Render at the training resolution (stored in the run), reading only this scene.
+    hw = info.dataset.get("image_hw") or info.model.image_size
+    ds = MultiViewDataset(a.data, image_size=hw, scenes=[a.scene])
+    if not 0 <= a.input_view < ds.n_views:
+        raise _UsageError(f"--input-view must be in [0, {ds.n_views}), got {a.input_view}")
+    pos = 0
     pred = predict_scene(model, ds, pos, input_view=a.input_view, chunk=a.chunk)
     out = Path(a.out) if a.out else Path(a.run) / "render" / f"sc{a.scene:04d}"
     paths = save_scene_figures(pred, ds, pos, out)

@@ -14,6 +14,12 @@ colour; it does not know how the fields are parameterised.
 - "slot_mixer" (appendix ablation): the same D^c + D^a weights a_k mix the slots into one
   field per point (see ``ObjectFields.eval_mixed``).
 
+Speed: D^c + D^a are computed in a folded but exactly equivalent form
+(:meth:`SlotGuidedComposer.logits`; the paper form is :meth:`SlotGuidedComposer.logits_reference`),
+and m is computed before the fields, so that ``SVORF`` can skip the (point, slot) pairs whose m
+is negligible (``slot_topk`` / ``slot_keep_mass``). With top-k selection the composition uses m
+renormalised over the evaluated slots (``compose`` itself is unchanged).
+
 Masks: ``valid`` [B, P or 1, K] bool (True = slot may own the point) removes slots from the
 softmax (masked-off slots, and foreground slots outside ``fg_box``); their m is exactly 0, and
 a row with a single valid slot gives m = 1 for it, never NaN.
@@ -85,7 +91,8 @@ class SlotGuidedComposer(nn.Module):
 
         Per point: gamma(x) [Cx] @ [Cx, H*K + K], a softmax over K per head, and
         att [H*K] @ G [H*K, K]; no [P, comp_dim] activation is materialised (the reference
-        writes five). Measured 4-5x faster at cpu scale (fwd+bwd).
+        writes five). Measured at cpu scale (4 scenes x 8192 points, fwd+bwd): 97 -> 19 ms in
+        float32, 65 -> 21 ms under bf16 autocast.
 
         Args:
             gx: gamma(x) [B, P, Cx], or [B, K, P, Cx] for per-slot points (object

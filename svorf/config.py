@@ -149,8 +149,9 @@ class ModelConfig:
     highest composition probability m (m comes from gamma(x) and the slots alone, before any
     field is evaluated). The composition then uses m renormalised over the evaluated slots;
     ``slot_probs`` still use the full m; slot k's density is 0 where it was not evaluated
-    (also in the connectivity loss). Values >= the number of used slots evaluate all. Per point, |rgb - rgb_full| <= 1 - M and
-    |sigma - sigma_full| <= (1 - M) max_k sigma_k, M = the evaluated slots' mass. Applies to
+    (also in the connectivity loss). Values >= the number of used slots evaluate all. Per
+    point, |rgb - rgb_full| <= 1 - M and |sigma - sigma_full| <= (1 - M) max_k sigma_k,
+    M = the evaluated slots' mass (ties in m are kept together). Applies to
     composition="slot_guided" only (the others need every slot's field first / mix fields):
     ignored otherwise. 0 = all slots (paper)."""
     slot_keep_mass: float = 1.0

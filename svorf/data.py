@@ -4,7 +4,9 @@ Where this sits: ``dataset on disk -> svorf.data -> model``. :class:`MultiViewDa
 reads a generated split folder (the :mod:`scenefmt` contract) once into memory,
 optionally resized to the training resolution, and caches one ray per pixel per
 view. :class:`RaySampler` draws the training batches of the paper's setup (one input
-view per scene, ``R`` random rays from the scene's other views).
+view per scene, ``R`` random rays from the scene's other views), the pixels picked by a
+strategy of :data:`RAY_SAMPLING` (``"uniform"`` = paper; ``"object_heavy"`` = label-free,
+half the rays from pixels far from the image's median colour).
 
 Conventions (all tensors are float32 unless said otherwise):
 
@@ -60,17 +62,19 @@ from scenefmt import (
 )
 
 __all__ = [
+    "RAY_SAMPLING",
+    "UORF_FOV_DEG",
     "DatasetError",
     "MultiViewDataset",
-    "RAY_SAMPLING",
     "RayBatch",
     "RaySampler",
     "SceneViews",
-    "UORF_FOV_DEG",
     "dataset_fingerprint",
+    "object_heavy_rays",
     "pixel_rays",
     "register_ray_sampling",
     "resize_intrinsics",
+    "salient_pixels",
 ]
 
 #: Field of view (x, y) in degrees assumed for uORF-layout folders, which store no
@@ -107,7 +111,9 @@ class DatasetError(ValueError):
 # --------------------------------------------------------------------------- rays
 
 
-def pixel_rays(K: Tensor, cam_to_world: Tensor, height: int, width: int) -> tuple[Tensor, Tensor, Tensor]:
+def pixel_rays(
+    K: Tensor, cam_to_world: Tensor, height: int, width: int
+) -> tuple[Tensor, Tensor, Tensor]:
     """Rays through every pixel centre of a batch of views.
 
     Computed in float64 and returned as float32.
@@ -124,7 +130,9 @@ def pixel_rays(K: Tensor, cam_to_world: Tensor, height: int, width: int) -> tupl
     if K.ndim != 3 or K.shape[1:] != (3, 3):
         raise ValueError(f"K must be [V, 3, 3], got {tuple(K.shape)}")
     if cam_to_world.shape != (K.shape[0], 4, 4):
-        raise ValueError(f"cam_to_world must be [{K.shape[0]}, 4, 4], got {tuple(cam_to_world.shape)}")
+        raise ValueError(
+            f"cam_to_world must be [{K.shape[0]}, 4, 4], got {tuple(cam_to_world.shape)}"
+        )
     K64, c2w = K.double(), cam_to_world.double()
     v, u = torch.meshgrid(
         torch.arange(height, dtype=torch.float64) + 0.5,
@@ -226,9 +234,21 @@ class MultiViewDataset(torch.utils.data.Dataset):
             the stored resolution. Must not exceed it (only down-sampling).
         max_scenes: load only the first ``max_scenes`` scenes (sorted by scene number).
         uorf_layout: read a plain uORF-layout folder (PNG views, ``_RT.txt``, ``_mask.png``;
-            no manifest, JSON, depth or intrinsics) instead of our format.
+            no manifest, JSON, depth or intrinsics) instead of our format. Assumptions
+            (uORF's loader and projection, which store none of this): view images are the
+            ``*.png`` files directly in the folder without a known suffix, grouped into
+            scenes by the ``sc%04d`` in their names and ordered by name; every scene has
+            the same number of views; ``K`` has its principal point at the image centre
+            and the field of view ``uorf_fov_deg``; ``{stem}_RT.txt`` is camera-to-world
+            with axes ``uorf_axes``; ``{stem}_depth.npy`` (optional) holds planar z, else
+            depth is NaN; instance ids come from ``{stem}_mask.png`` by uORF's
+            second-lowest-grey-level background rule (see :func:`_uorf_ids`), all
+            background when the mask is absent. The folder fingerprint hashes the
+            ``_RT.txt`` files.
         uorf_fov_deg: field of view (x, y) or one value for both, in degrees, used to
             build ``K`` for uORF-layout folders. Default: uORF's own projection.
+        scenes: load only these scene numbers (``sc%04d``; applied before ``max_scenes``),
+            e.g. to render one scene of a large split without reading the rest.
         uorf_axes: camera axes of the ``_RT.txt`` matrices of a uORF-layout folder.
             ``"opencv"`` (default): uORF's ``models/projection.py`` maps pixel column,
             pixel row and positive depth straight through ``cam2world``, i.e. x right,
@@ -253,6 +273,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
         *,
         uorf_fov_deg: float | tuple[float, float] = UORF_FOV_DEG,
         uorf_axes: str = "opencv",
+        scenes: Sequence[int] | None = None,
     ) -> None:
         self.root = Path(root)
         if not self.root.is_dir():
@@ -263,6 +284,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
             raise ValueError(f"uorf_axes must be 'opencv' or 'opengl', got {uorf_axes!r}")
         self.uorf_layout = uorf_layout
         self.manifest: dict = {}
+        self._only = None if scenes is None else {int(x) for x in scenes}
         if uorf_layout:
             loaded = self._load_uorf(max_scenes, uorf_fov_deg, uorf_axes)
         else:
@@ -298,6 +320,30 @@ class MultiViewDataset(torch.utils.data.Dataset):
 
     # ---------------------------------------------------------------- loading
 
+    def _select(self, scenes: list[int], max_scenes: int | None) -> list[int]:
+        if self._only is not None:
+            missing = sorted(self._only - set(scenes))
+            if missing:
+                raise DatasetError(
+                    f"{self.root}: no scene sc{missing[0]:04d} (the split holds "
+                    f"{len(scenes)} scenes, sc{scenes[0]:04d}..sc{scenes[-1]:04d})"
+                )
+            scenes = [x for x in scenes if x in self._only]
+        return scenes if max_scenes is None else scenes[:max_scenes]
+
+    def _read(self, reader: Callable, path: Path):
+        """``reader(path)`` with any decoding failure turned into a one-line DatasetError."""
+        try:
+            return reader(path)
+        except FileNotFoundError as e:
+            raise self._missing(path) from e
+        except (OSError, ValueError, SyntaxError) as e:
+            msg = (str(e).strip().splitlines() or [type(e).__name__])[0]
+            raise DatasetError(
+                f"{path}: unreadable ({msg[:120]}); run `generate verify {self.root}` "
+                f"and regenerate the scene"
+            ) from e
+
     def _missing(self, path: Path) -> DatasetError:
         return DatasetError(
             f"{path}: missing - {self.root} is not a complete split folder "
@@ -311,7 +357,9 @@ class MultiViewDataset(torch.utils.data.Dataset):
         try:
             self.manifest = read_json(manifest_path)
         except (OSError, ValueError) as e:
-            raise DatasetError(f"{manifest_path}: unreadable JSON ({e}); run `generate verify {self.root}`") from e
+            raise DatasetError(
+                f"{manifest_path}: unreadable JSON ({e}); run `generate verify {self.root}`"
+            ) from e
         n_views = int(self.manifest.get("n_views", 4))
         layout = SplitLayout(self.root, n_views=n_views)
         scenes = layout.scene_indices()
@@ -325,15 +373,16 @@ class MultiViewDataset(torch.utils.data.Dataset):
             first = min(expected - set(scenes), default=None)
             if first is not None:
                 raise self._missing(layout.scene_json(first))
-        if max_scenes is not None:
-            scenes = scenes[:max_scenes]
+        scenes = self._select(scenes, max_scenes)
         rgb, ids, depth, Ks, c2ws = [], [], [], [], []
         for s in scenes:
             for p in layout.scene_files(s):
                 if not p.is_file():
                     raise self._missing(p)
-            meta = read_json(layout.scene_json(s))
             jpath = layout.scene_json(s)
+            meta = self._read(read_json, jpath)
+            if not isinstance(meta, dict):
+                raise DatasetError(f"{jpath}: not a scene record (a JSON object expected)")
             conv = meta.get("camera_convention", "opencv")
             if conv != "opencv":
                 raise DatasetError(f"{jpath}: camera_convention {conv!r} is not 'opencv'")
@@ -350,7 +399,9 @@ class MultiViewDataset(torch.utils.data.Dataset):
                     Kv = np.asarray(vm["K"], dtype=np.float64)
                     Tv = np.asarray(vm["cam_to_world"], dtype=np.float64)
                 except (KeyError, TypeError, ValueError) as e:
-                    raise DatasetError(f"{jpath}: view {view} lacks a valid K / cam_to_world ({e})") from e
+                    raise DatasetError(
+                        f"{jpath}: view {view} lacks a valid K / cam_to_world ({e})"
+                    ) from e
                 if Kv.shape != (3, 3) or Tv.shape != (4, 4):
                     raise DatasetError(
                         f"{jpath}: view {view} K must be 3x3 and cam_to_world 4x4, "
@@ -361,9 +412,9 @@ class MultiViewDataset(torch.utils.data.Dataset):
                         f"{jpath}: view {view} image {vm['image']!r} does not match the "
                         f"layout name {layout.rgb(s, view).name!r}"
                     )
-                img = read_rgb(layout.rgb(s, view))
-                inst = read_instances(layout.instances(s, view))
-                dz = read_depth_exr(layout.depth(s, view))
+                img = self._read(read_rgb, layout.rgb(s, view))
+                inst = self._read(read_instances, layout.instances(s, view))
+                dz = self._read(read_depth_exr, layout.depth(s, view))
                 if inst.shape != img.shape[:2] or dz.shape != img.shape[:2]:
                     raise DatasetError(
                         f"{layout.rgb(s, view)}: image {img.shape[:2]}, instances "
@@ -404,9 +455,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
             raise DatasetError(
                 f"{self.root}: no view images named *sc%04d*.png - not a uORF-layout folder"
             )
-        scenes = sorted(by_scene)
-        if max_scenes is not None:
-            scenes = scenes[:max_scenes]
+        scenes = self._select(sorted(by_scene), max_scenes)
         counts = {len(by_scene[s]) for s in scenes}
         if len(counts) != 1:
             raise DatasetError(f"{self.root}: scenes have different view counts {sorted(counts)}")
@@ -414,7 +463,9 @@ class MultiViewDataset(torch.utils.data.Dataset):
         rgb, ids, depth, Ks, c2ws = [], [], [], [], []
         for s in scenes:
             files = sorted(by_scene[s])
-            s_rgb = [read_rgb(p) for p in files]
+            s_rgb = [self._read(read_rgb, p) for p in files]
+            if len({a.shape for a in s_rgb}) != 1:
+                raise DatasetError(f"{self.root}: the views of scene sc{s:04d} differ in size")
             h, w = s_rgb[0].shape[:2]
             fx = 0.5 * w / math.tan(math.radians(fx_deg) / 2.0)
             fy = 0.5 * h / math.tan(math.radians(fy_deg) / 2.0)
@@ -424,19 +475,21 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 rt = p.with_name(p.stem + "_RT.txt")
                 if not rt.is_file():
                     raise DatasetError(f"{rt}: missing - every uORF view image needs its _RT.txt")
-                T = read_matrix_txt(rt)
+                T = self._read(read_matrix_txt, rt)
                 if T.shape != (4, 4):
                     raise DatasetError(f"{rt}: expected a 4x4 matrix, got shape {T.shape}")
                 s_c2w.append(T @ _GL_TO_CV if axes == "opengl" else T)
                 dpath = p.with_name(p.stem + "_depth.npy")
                 if dpath.is_file():  # assumed planar z (what our writer stores there)
-                    s_depth.append(np.load(dpath).reshape(h, w).astype(np.float32))
+                    dz = self._read(np.load, dpath)
+                    if dz.size != h * w:
+                        raise DatasetError(f"{dpath}: {dz.shape} does not match the {h}x{w} image")
+                    s_depth.append(dz.reshape(h, w).astype(np.float32))
                 else:
                     s_depth.append(np.full((h, w), np.nan, dtype=np.float32))
                 mpath = p.with_name(p.stem + "_mask.png")
                 if mpath.is_file():
-                    with Image.open(mpath) as im:
-                        s_levels.append(np.asarray(im.convert("L")))
+                    s_levels.append(self._read(_read_grey, mpath))
                 else:
                     s_levels.append(None)
             rgb.append(np.stack(s_rgb))
@@ -506,34 +559,48 @@ class MultiViewDataset(torch.utils.data.Dataset):
         return self.manifest.get("preset")
 
 
+def _read_grey(path: Path) -> np.ndarray:
+    with Image.open(path) as im:
+        return np.asarray(im.convert("L"))
+
+
 def _uorf_ids(levels: list[np.ndarray | None], h: int, w: int) -> np.ndarray:
     """Instance ids [V, H, W] from uORF grey masks with the uORF background rule.
 
     Per view the background is the *second-lowest* grey level (uORF's loader); every
-    other level is an object. Ids 1..n follow the sorted union of object levels over
-    the scene's views, so one object keeps its id across views. Views without a mask
-    read as all background.
+    other level is an object, with one exception: a level that occupies only pixel
+    (0, 0) of a view is our writer's sentinel (``scenefmt.MASK_SENTINEL_LEVEL``, there
+    so that the second-lowest rule holds) and reads as background. uORF's own loader
+    would see it as a one-pixel object. Ids 1..n follow the sorted union of object
+    levels over the scene's views, so one object keeps its id across views (assumes a
+    grey level means the same object in every view of a scene, as in uORF's data).
+    Views without a mask read as all background.
     """
     out = np.zeros((len(levels), h, w), dtype=np.uint8)
-    bgs, fg_levels = [], set()
+    bgs: list[set[int] | None] = []
+    fg_levels: set[int] = set()
     for m in levels:
         if m is None:
             bgs.append(None)
             continue
-        uniq = np.unique(m)
-        bg = uniq[1] if len(uniq) > 1 else uniq[0]
+        uniq, counts = np.unique(m, return_counts=True)
+        bg = {int(uniq[1] if len(uniq) > 1 else uniq[0])}
+        corner = int(m[0, 0])
+        if len(uniq) > 1 and corner == int(uniq[0]) and int(counts[0]) == 1:
+            bg.add(corner)  # the sentinel pixel
         bgs.append(bg)
-        fg_levels.update(int(u) for u in uniq if u != bg)
+        fg_levels.update(int(u) for u in uniq if int(u) not in bg)
     lut = {lv: k + 1 for k, lv in enumerate(sorted(fg_levels))}
     if len(lut) > 255:
         raise DatasetError("uORF masks have more than 255 object grey levels")
     for j, (m, bg) in enumerate(zip(levels, bgs)):
-        if m is None:
+        if m is None or bg is None:
             continue
         table = np.zeros(256, dtype=np.uint8)
         for lv, k in lut.items():
             table[lv] = k
-        table[bg] = 0
+        for lv in bg:
+            table[lv] = 0
         out[j] = table[m]
     return out
 
@@ -553,8 +620,59 @@ def _uniform_rays(target_rgb: Tensor, n: int, generator: torch.Generator) -> Ten
     return torch.randint(0, total, (n,), generator=generator)
 
 
+#: Defaults of the "object_heavy" strategy (see :func:`object_heavy_rays`).
+OBJECT_HEAVY_FRACTION = 0.5
+OBJECT_HEAVY_THRESHOLD = 0.1
+
+
+def salient_pixels(target_rgb: Tensor, threshold: float = OBJECT_HEAVY_THRESHOLD) -> Tensor:
+    """Label-free "probably object" mask: colour far from the image's median colour.
+
+    Args:
+        target_rgb: uint8 [V, H, W, 3].
+        threshold: in [0, 1] colour units; a pixel is salient when any channel differs
+            from its view's per-channel median by more than this.
+
+    Returns:
+        bool [V, H, W].
+    """
+    x = target_rgb.reshape(target_rgb.shape[0], -1, 3).float()
+    med = x.median(dim=1, keepdim=True).values
+    far = ((x - med).abs() > threshold * 255.0).any(dim=-1)
+    return far.reshape(target_rgb.shape[:3])
+
+
+def object_heavy_rays(
+    target_rgb: Tensor,
+    n: int,
+    generator: torch.Generator,
+    *,
+    fraction: float = OBJECT_HEAVY_FRACTION,
+    threshold: float = OBJECT_HEAVY_THRESHOLD,
+) -> Tensor:
+    """Label-free object-heavy sampling (DESIGN.md section 9; no ground-truth masks).
+
+    ``round(fraction * n)`` rays come uniformly (with replacement) from the salient
+    pixels of :func:`salient_pixels` over all target views; the rest, or all ``n`` when
+    no pixel is salient, come uniformly from every pixel. On CLEVR-like 64x64 data
+    objects cover ~6% of the pixels but ~77% of the salient ones, so objects get a
+    gradient from the first steps instead of a "mean scene" plateau.
+    """
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f"object_heavy fraction must be in [0, 1], got {fraction}")
+    total = target_rgb.shape[0] * target_rgb.shape[1] * target_rgb.shape[2]
+    cand = salient_pixels(target_rgb, threshold).reshape(-1).nonzero().squeeze(1)
+    n_obj = round(fraction * n) if len(cand) else 0
+    picked = cand[torch.randint(0, max(len(cand), 1), (n_obj,), generator=generator)]
+    rest = torch.randint(0, total, (n - n_obj,), generator=generator)
+    return torch.cat([picked, rest])
+
+
 #: Registry of ray-sampling strategies by name (``TrainConfig.ray_sampling``).
-RAY_SAMPLING: dict[str, RaySamplingFn] = {"uniform": _uniform_rays}
+RAY_SAMPLING: dict[str, RaySamplingFn] = {
+    "uniform": _uniform_rays,
+    "object_heavy": object_heavy_rays,
+}
 
 
 def register_ray_sampling(name: str, fn: RaySamplingFn) -> None:
@@ -645,7 +763,10 @@ class RaySampler:
         v_all, (h, w) = ds.n_views, ds.image_hw
         r = self.rays_per_scene
         inputs = torch.randint(0, v_all, (len(scenes),), generator=generator)
-        out = {k: [] for k in ("images", "rays_o", "rays_d", "target_rgb", "target_view", "target_pixel")}
+        out = {
+            k: []
+            for k in ("images", "rays_o", "rays_d", "target_rgb", "target_view", "target_pixel")
+        }
         for s, iv in zip(scenes.tolist(), inputs.tolist()):
             if self.nvs:
                 views = torch.tensor([v for v in range(v_all) if v != iv])
@@ -660,4 +781,6 @@ class RaySampler:
             out["target_rgb"].append(ds._rgb[s].reshape(v_all, h * w, 3)[vsel, pix].float() / 255.0)
             out["target_view"].append(vsel)
             out["target_pixel"].append(pix)
-        return RayBatch(scenes=scenes, input_view=inputs, **{k: torch.stack(x) for k, x in out.items()})
+        return RayBatch(
+            scenes=scenes, input_view=inputs, **{k: torch.stack(x) for k, x in out.items()}
+        )

@@ -84,19 +84,20 @@ class Variant:
 
 
 def default_variants(scale: str, sharpen: float = 8.0) -> list[Variant]:
-    """baseline, one variant per knob, all knobs, the scale's defaults, and sharp-m variants.
+    """original, baseline, one variant per knob, all knobs, the scale's defaults, and the
+    sharp-m variants (left out when ``sharpen`` is 1).
 
-    ``fg_box`` 3.0 is the foreground cube of CLEVR-like scenes (objects within |x|,|y| <= 3
-    and below z = 1.5) inside the +-4.5 scene box.
+    ``fg_box`` 3.75 is a foreground cube for the CLEVR-like presets (object centres within
+    |x|, |y| <= 3 = ``generators`` xy_range, plus the object's size) inside the +-4.5 box.
     """
     cfg = model_config(scale)  # type: ignore[arg-type]
     defaults = {k: getattr(cfg, k) for k in KNOBS_OFF}
-    every = {"bf16_autocast": True, "fg_box": 3.0, "slot_topk": 2, "slot_keep_mass": 0.99}
+    every = {"bf16_autocast": True, "fg_box": 3.75, "slot_topk": 2, "slot_keep_mass": 0.99}
     out = [
         Variant("original", {}, reference=True, paper_form_composer=True),
         Variant("baseline", {}),
         Variant("bf16", {"bf16_autocast": True}),
-        Variant("fg_box=3", {"fg_box": 3.0}),
+        Variant("fg_box=3.75", {"fg_box": 3.75}),
         Variant("topk=3", {"slot_topk": 3}),
         Variant("topk=2", {"slot_topk": 2}),
         Variant("keep_mass=0.99", {"slot_keep_mass": 0.99}),
@@ -400,8 +401,9 @@ def format_table(report: dict[str, Any]) -> str:
         f"ratio: {report['time_reference']} median / variant median (>1 = faster); vs base: "
         "the same against 'baseline'; query s / q ratio: the per-point evaluation alone "
         "(hypernetwork, masks, fields, composition at all n_coarse + n_fine samples, fwd+bwd); "
-        "pairs: fraction of (point, slot) field evaluations kept (training steps); errors: eval render vs the knob-free model with the same weights (sharp-m "
-        "rows vs 'sharp-m baseline'): rgb max/mean |diff|, depth mean |diff| (world units), "
+        "pairs: fraction of (point, slot) field evaluations kept (training steps); errors: "
+        "eval render vs the knob-free model with the same weights (sharp-m rows vs "
+        "'sharp-m baseline'): rgb max/mean |diff|, depth mean |diff| (world units), "
         "m max: slot_probs max |diff|; RSS: peak of a fresh process running 3 steps."
     )
     return "\n".join(lines)

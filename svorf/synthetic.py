@@ -150,9 +150,7 @@ def _render_view(
     with np.errstate(divide="ignore", invalid="ignore"):
         t_plane = -origin[2] / dirs[..., 2]
     p = origin + t_plane[..., None] * dirs
-    on_plate = (
-        (t_plane > 0) & (np.abs(p[..., 0]) <= PLATE_HALF) & (np.abs(p[..., 1]) <= PLATE_HALF)
-    )
+    on_plate = (t_plane > 0) & (np.abs(p[..., 0]) <= PLATE_HALF) & (np.abs(p[..., 1]) <= PLATE_HALF)
     t_best[on_plate] = t_plane[on_plate]
     normal[on_plate] = (0.0, 0.0, 1.0)
     albedo[on_plate] = _PLATE_RGB

@@ -44,16 +44,17 @@ from torch import Tensor
 
 from scenefmt import atomic_write_bytes, atomic_write_json
 from svorf.config import ModelConfig, model_config
-from svorf.data import RAY_SAMPLING, MultiViewDataset, RaySampler
+from svorf.data import RAY_SAMPLING, MultiViewDataset, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
 
 __all__ = [
-    "CheckpointError",
     "PRESETS",
+    "CheckpointError",
     "PresetSpec",
     "RunInfo",
     "TrainConfig",
     "TrainingDiverged",
+    "dataset_fingerprint",
     "default_eval",
     "load_run",
     "predict_scene",
@@ -182,7 +183,8 @@ def train_config(scale: str, preset: str = "clevr567", **overrides: Any) -> Trai
 
     Args:
         scale: "smoke" (tests: seconds), "cpu" (a 2-core machine, about an hour at 64x64;
-            a first guess, to be tuned) or "paper" (the paper's optimiser and rays).
+            object-heavy ray sampling; a first guess, not yet shown to decompose) or
+            "paper" (the paper's optimiser, uniform rays, 64 rays per scene).
         preset: a key of :data:`PRESETS` (checked; all presets share the settings today).
         **overrides: any TrainConfig field.
 
@@ -196,8 +198,13 @@ def train_config(scale: str, preset: str = "clevr567", **overrides: Any) -> Trai
         base = TrainConfig(steps=30, batch_scenes=2, rays_per_scene=64, lr=1e-3, warmup=5,
                            log_every=5, ckpt_every=15)  # fmt: skip
     elif scale == "cpu":
-        base = TrainConfig(steps=6000, batch_scenes=4, rays_per_scene=256, lr=4e-4,
-                           warmup=500, log_every=25, ckpt_every=500, eval_every=1000)  # fmt: skip
+        # ~1 h on 2 cores: one step of the cpu model (K=8, 16+16 samples) at 4 x 128 rays
+        # took 1.2-1.9 s on a shared, overloaded 2-core Xeon (4 x 256: 2.6-3.1 s), about
+        # 0.9 s when the machine is quiet. Object-heavy rays because uniform rays left the
+        # DESIGN section 9 calibration model on a "mean scene" plateau.
+        base = TrainConfig(steps=4000, batch_scenes=4, rays_per_scene=128, lr=4e-4,
+                           warmup=500, log_every=25, ckpt_every=250, eval_every=1000,
+                           ray_sampling="object_heavy")  # fmt: skip
     elif scale == "paper":
         base = TrainConfig(steps=150_000, batch_scenes=16, rays_per_scene=64, lr=1e-4,
                            warmup=1000, log_every=100, ckpt_every=5000)  # fmt: skip
@@ -220,7 +227,7 @@ def run_configs(
 
 
 def resolve_device(name: str = "auto") -> torch.device:
-    """"auto" -> CUDA when available, else CPU; anything else is passed to torch.device."""
+    """Device for a name: "auto" = CUDA when available, else CPU; others go to torch.device."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     dev = torch.device(name)
@@ -259,15 +266,17 @@ def _read_checkpoint(path: Path) -> dict[str, Any]:
         )
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - any unpickling failure means a bad file
+    except Exception as e:
         reason = _first_line(e)
         raise CheckpointError(
             f"{path}: corrupt or unreadable checkpoint ({reason[:160]}); delete it and "
             f"retrain or restore a copy"
         ) from e
     required = ("format", "step", "model", "optimizer", "rng", "model_config", "train_config")
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT or any(
-        k not in ckpt for k in required
+    if (
+        not isinstance(ckpt, dict)
+        or ckpt.get("format") != CHECKPOINT_FORMAT
+        or any(k not in ckpt for k in required)
     ):
         raise CheckpointError(
             f"{path}: not an sVORF checkpoint of format {CHECKPOINT_FORMAT!r}; retrain"
@@ -287,7 +296,9 @@ class RunInfo:
     wall_s: float
 
 
-def load_run(run_dir: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[SVORF, RunInfo]:
+def load_run(
+    run_dir: str | os.PathLike, device: str | torch.device = "cpu"
+) -> tuple[SVORF, RunInfo]:
     """Load the latest checkpoint of a run folder.
 
     Returns:
@@ -401,7 +412,9 @@ def default_eval(model: SVORF, dataset: MultiViewDataset, max_scenes: int = 4) -
             derr.append((p["depth_z"][ok] - gtd[ok]).abs().mean())
 
     def psnr(xs: list[Tensor]) -> float:
-        return float(-10.0 * torch.log10(torch.stack(xs).mean().clamp_min(1e-10))) if xs else math.nan
+        return (
+            float(-10.0 * torch.log10(torch.stack(xs).mean().clamp_min(1e-10))) if xs else math.nan
+        )
 
     return {
         "psnr_input": psnr(mse_in),
@@ -470,9 +483,9 @@ def train(
     model_cfg: ModelConfig,
     train_cfg: TrainConfig,
     resume: bool = False,
-    *,
-    eval_data: str | os.PathLike | None = None,
     eval_fn: EvalFn | None = None,
+    eval_data: str | os.PathLike | None = None,
+    *,
     max_scenes: int | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -532,20 +545,26 @@ def train(
     gen = torch.Generator().manual_seed(train_cfg.seed)
     model = SVORF(model_cfg).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=lr_at(train_cfg, 0), betas=train_cfg.betas)
-    start, wall_offset = 0, 0.0
+    start, wall_offset, resumed_loss = 0, 0.0, math.nan
     out.mkdir(parents=True, exist_ok=True)
     log_path, eval_path = out / "log.jsonl", out / "eval.jsonl"
 
     if resume and ckpt_path.exists():
         ckpt = _read_checkpoint(ckpt_path)
         if ckpt["model_config"] != model_cfg.to_dict():
-            diff = sorted(k for k, v in model_cfg.to_dict().items() if ckpt["model_config"].get(k) != v)
-            raise CheckpointError(f"{ckpt_path}: resume with a different model config (fields {diff})")
+            diff = sorted(
+                k for k, v in model_cfg.to_dict().items() if ckpt["model_config"].get(k) != v
+            )
+            raise CheckpointError(
+                f"{ckpt_path}: resume with a different model config (fields {diff})"
+            )
         old = ckpt["train_config"]
         diff = sorted(k for k, v in train_cfg.to_dict().items()
                       if k not in _RESUMABLE_CHANGES and old.get(k) != v)  # fmt: skip
         if diff:
-            raise CheckpointError(f"{ckpt_path}: resume with a different train config (fields {diff})")
+            raise CheckpointError(
+                f"{ckpt_path}: resume with a different train config (fields {diff})"
+            )
         fp = ckpt.get("dataset", {}).get("fingerprint")
         if fp != dataset.fingerprint:
             raise CheckpointError(
@@ -557,8 +576,11 @@ def train(
             opt.load_state_dict(ckpt["optimizer"])
             _set_rng_state(ckpt["rng"], gen)
         except (RuntimeError, ValueError, KeyError, TypeError) as e:
-            raise CheckpointError(f"{ckpt_path}: cannot restore the checkpoint ({_first_line(e)[:160]})") from e
+            raise CheckpointError(
+                f"{ckpt_path}: cannot restore the checkpoint ({_first_line(e)[:160]})"
+            ) from e
         start, wall_offset = int(ckpt["step"]), float(ckpt.get("wall_s", 0.0))
+        resumed_loss = float(ckpt.get("loss", math.nan))
         _truncate_jsonl(log_path, start)
         _truncate_jsonl(eval_path, start)
     else:
@@ -579,14 +601,20 @@ def train(
             "train_config": train_cfg.to_dict(),
             "dataset": data_info,
             "wall_s": wall,
+            "loss": last_loss,
             "torch_version": str(torch.__version__),
         }, ckpt_path)  # fmt: skip
 
     def run_eval(step: int, wall: float) -> None:
         assert eval_ds is not None
-        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-            metrics = (eval_fn or (lambda m, d: default_eval(m, d, train_cfg.eval_scenes)))(model, eval_ds)
-        model.train()
+        fn = eval_fn or (lambda m, d: default_eval(m, d, train_cfg.eval_scenes))
+        model.eval()
+        try:
+            forked = [device] if device.type == "cuda" else []
+            with torch.random.fork_rng(devices=forked), torch.no_grad():
+                metrics = fn(model, eval_ds)
+        finally:
+            model.train()
         _append_jsonl(eval_path, {"step": step, "wall_s": round(wall, 3),
                                   **{k: float(v) for k, v in metrics.items()}})  # fmt: skip
 
@@ -601,18 +629,21 @@ def train(
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=train_cfg.steps, initial=start, desc="svorf train", dynamic_ncols=True)
+        bar = tqdm(total=train_cfg.steps, initial=start, desc="svorf train", unit="step",
+                   dynamic_ncols=True)  # fmt: skip
     model.train()
     t0 = time.perf_counter()
     paused = 0.0  # seconds spent in eval / checkpoint writing, kept out of wall_s
-    last_loss = math.nan
+    last_loss = resumed_loss
     last_log_t, last_log_step = t0, start
     try:
         for step in range(start, train_cfg.steps):
             lr = lr_at(train_cfg, step)
             for group in opt.param_groups:
                 group["lr"] = lr
-            batch = sampler.sample(sampler.sample_scenes(train_cfg.batch_scenes, gen), gen).to(device)
+            batch = sampler.sample(sampler.sample_scenes(train_cfg.batch_scenes, gen), gen).to(
+                device
+            )
             # In train mode the model draws the packed-11 slot mask itself (global RNG).
             out_r = model(batch.images, batch.rays_o, batch.rays_d, perturb=True)
             loss, parts = model.loss(out_r, batch.target_rgb)
@@ -620,7 +651,7 @@ def train(
             if not torch.isfinite(loss):
                 shown = ", ".join(f"{k}={float(v):.4g}" for k, v in parts.items())
                 raise TrainingDiverged(
-                    f"non-finite loss {float(loss)} at step {done} ({shown}); {_kept(saved)}"
+                    f"non-finite loss {float(loss.detach())} at step {done} ({shown}); {_kept(saved)}"
                 )
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -673,4 +704,3 @@ def train(
     }
     atomic_write_json(out / "summary.json", summary)
     return summary
-

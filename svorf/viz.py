@@ -134,7 +134,9 @@ def save_scene_figures(
     scale = max(1, -(-grid_min_size // h))
     if scale > 1:
         grid = np.asarray(
-            Image.fromarray(grid).resize((grid.shape[1] * scale, grid.shape[0] * scale), Image.NEAREST)
+            Image.fromarray(grid).resize(
+                (grid.shape[1] * scale, grid.shape[0] * scale), Image.NEAREST
+            )
         )
     write_rgb(out / "grid.png", grid)
     written.append(out / "grid.png")

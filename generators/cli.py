@@ -1,0 +1,165 @@
+"""The ``generate`` command (thin wrapper over ``pipeline.generate_dataset``).
+
+    generate --preset clevr567 [--split train|test] [--n N] [--out DIR] [--workers W]
+             [--resolution 128] [--seed S] [--samples 16] [--denoise/--no-denoise]
+             [--bounces 4] [--shard i/n] [--no-progress]
+    generate verify DIR
+    generate preview --preset NAME [--n 4] [--out DIR]
+
+Bad input (unknown preset, --n <= 0, unwritable --out, --resolution < 16, missing
+bpy) prints one line ``generate: error: ...`` and exits with status 2, writing nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from generators.presets import PRESETS
+from generators.spec import RenderSettings
+
+_D = RenderSettings()
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2
+        print(f"generate: error: {message}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _fail(msg: str) -> int:
+    print(f"generate: error: {msg}", file=sys.stderr)
+    return 2
+
+
+def _shard(text: str) -> tuple[int, int]:
+    try:
+        i, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--shard must look like i/n (e.g. 0/4), got {text!r}"
+        ) from None
+    return i, n
+
+
+def _gen_parser() -> _Parser:
+    ap = _Parser(prog="generate", description="Render a uORF-style multi-view dataset split "
+                 "(subcommands: 'generate verify DIR', 'generate preview --preset NAME').")  # fmt: skip
+    ap.add_argument("--preset", required=True, help=f"one of: {', '.join(sorted(PRESETS))}")
+    ap.add_argument(
+        "--split", default=None, help="train or test (default: the preset's first split)"
+    )
+    ap.add_argument("--n", type=int, default=None, help="scenes (default: the preset's split size)")
+    ap.add_argument(
+        "--out", type=Path, default=None, help="split folder (default data/{preset}/{split})"
+    )
+    ap.add_argument(
+        "--workers", type=int, default=None, help="worker processes (default: cores // 2, >= 1)"
+    )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="Cycles threads per worker (default cores//workers)",
+    )
+    ap.add_argument("--resolution", type=int, default=128, help="square image size (>= 16)")
+    ap.add_argument("--seed", type=int, default=0, help="dataset seed (>= 0)")
+    ap.add_argument(
+        "--samples",
+        type=int,
+        default=_D.samples,
+        help=f"Cycles samples/pixel (default {_D.samples})",
+    )
+    ap.add_argument("--denoise", action=argparse.BooleanOptionalAction, default=_D.denoise,
+                    help="OpenImageDenoise (default on)")  # fmt: skip
+    ap.add_argument(
+        "--bounces",
+        type=int,
+        default=_D.max_bounces,
+        help=f"max bounces (default {_D.max_bounces})",
+    )
+    ap.add_argument(
+        "--shard", type=_shard, default=(0, 1), help="i/n: only scenes with index %% n == i"
+    )
+    ap.add_argument("--source", type=Path, default=None,
+                    help="derived presets (clevr567-gray): folder of the source renders to convert")  # fmt: skip
+    ap.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    return ap
+
+
+def _generate(argv: list[str]) -> int:
+    from generators.blender_backend import BpyMissingError
+    from generators.pipeline import GenerateConfig, generate_dataset
+
+    a = _gen_parser().parse_args(argv)
+    try:
+        cfg = GenerateConfig(
+            preset=a.preset, split=a.split, n=a.n, out=a.out, resolution=a.resolution,
+            seed=a.seed, samples=a.samples, denoise=a.denoise, bounces=a.bounces,
+            workers=a.workers, threads=a.threads, shard=a.shard, progress=a.progress,
+            source=a.source,
+        )  # fmt: skip
+        summary = generate_dataset(cfg)
+    except (ValueError, BpyMissingError) as e:
+        return _fail(str(e).splitlines()[0])
+    except KeyboardInterrupt:
+        print("generate: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+    print(summary.line(), file=sys.stderr if a.progress else sys.stdout)
+    return 0
+
+
+def _verify(argv: list[str]) -> int:
+    from generators.verify import verify_split
+
+    ap = _Parser(prog="generate verify", description="Check a split folder against the format.")
+    ap.add_argument("dir", type=Path)
+    a = ap.parse_args(argv)
+    problems = verify_split(a.dir)
+    if problems:
+        for p in problems:
+            print(p)
+        print(f"generate verify: {a.dir}: {len(problems)} problem(s)", file=sys.stderr)
+        return 1
+    print(f"generate verify: {a.dir}: OK")
+    return 0
+
+
+def _preview(argv: list[str]) -> int:
+    from generators.blender_backend import BpyMissingError
+    from generators.pipeline import GenerateConfig, generate_dataset
+    from generators.preview import write_contact_sheet
+
+    ap = _Parser(prog="generate preview", description="Render a few scenes and a contact sheet.")
+    ap.add_argument("--preset", required=True)
+    ap.add_argument("--split", default=None)
+    ap.add_argument("--n", type=int, default=4)
+    ap.add_argument("--out", type=Path, default=None, help="default data/preview/{preset}")
+    ap.add_argument("--resolution", type=int, default=128)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--samples", type=int, default=_D.samples)
+    a = ap.parse_args(argv)
+    out = a.out if a.out is not None else Path("data") / "preview" / a.preset
+    try:
+        cfg = GenerateConfig(preset=a.preset, split=a.split, n=a.n, out=out / "split",
+                             resolution=a.resolution, seed=a.seed, samples=a.samples)  # fmt: skip
+        generate_dataset(cfg)
+    except (ValueError, BpyMissingError) as e:
+        return _fail(str(e).splitlines()[0])
+    path = write_contact_sheet(out / "split", out / "preview.png", a.n)
+    print(f"generate preview: {path} (rows = scenes; per view: RGB | instance ids | depth)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "verify":
+        return _verify(argv[1:])
+    if argv and argv[0] == "preview":
+        return _preview(argv[1:])
+    return _generate(argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

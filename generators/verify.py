@@ -1,0 +1,174 @@
+"""``generate verify DIR``: check a split folder against the dataset contract.
+
+Data flow: split folder on disk -> :func:`verify_split` -> list of problems (empty =
+valid). Reads only through ``scenefmt``; needs no bpy. Checks, per scene and view:
+every file present; RGB uint8 [R, R, 3] at the manifest resolution; instance ids
+uint8 [R, R], a subset of the scene JSON's instance ids, with pixel (0, 0) = 0;
+``_mask.png`` equal to ``uorf_mask_from_instances(ids)`` and obeying the uORF rule
+(after PIL ``convert('L')`` the second-lowest grey level is the background level and
+covers exactly the id-0 pixels other than the sentinel); depth float32 [R, R],
+finite and positive wherever geometry was hit (every pixel here: the ground
+is hit everywhere; objects always), never NaN; ``_RT.txt`` / ``_azi_rot.txt`` equal to
+the JSON camera; no stray ``*.png`` that the uORF loader would take for a view.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from generators import geometry
+from scenefmt import (
+    MASK_BG_LEVEL,
+    SplitLayout,
+    read_depth_exr,
+    read_instances,
+    read_json,
+    read_matrix_txt,
+    read_rgb,
+    uorf_mask_from_instances,
+)
+
+#: uORF loader suffixes that are not views (``data/multiscenes_dataset.py``).
+UORF_NON_VIEW_SUFFIXES = (
+    "_mask.png", "_mask_for_moving.png", "_mask_for_bg.png", "_mask_for_providing_bg.png",
+    "_moved.png", "_changed.png", "_changed_mask.png", "_fg.png", "_bg_mask.png",
+)  # fmt: skip
+
+
+def uorf_background_level(mask_path: str | Path) -> int:
+    """The uORF loader's background: the second-lowest grey level after convert('L')."""
+    with Image.open(mask_path) as im:
+        levels = np.unique(np.asarray(im.convert("L")))
+    if len(levels) < 2:
+        raise ValueError(f"{mask_path}: only {len(levels)} grey level(s); uORF needs >= 2")
+    return int(levels[1])
+
+
+def _view_problems(layout: SplitLayout, meta: dict, s: int, v: int, res: int) -> list[str]:
+    out: list[str] = []
+    stem = layout.stem(s, v)
+    ids_json = {int(o["instance_id"]) for o in meta.get("objects", [])}
+    try:
+        rgb = read_rgb(layout.rgb(s, v))
+        with Image.open(layout.rgb(s, v)) as im:
+            if im.mode != "RGB":
+                out.append(f"{stem}.png: mode {im.mode}, expected RGB")
+        if rgb.shape != (res, res, 3):
+            out.append(f"{stem}.png: shape {rgb.shape}, expected {(res, res, 3)}")
+        ids = read_instances(layout.instances(s, v))
+        if ids.shape != (res, res):
+            out.append(f"instances/{stem}.png: shape {ids.shape}, expected {(res, res)}")
+            return out
+        extra = set(np.unique(ids).tolist()) - {0} - ids_json
+        if extra:
+            out.append(f"instances/{stem}.png: ids {sorted(extra)} not in sc{s:04d}.json objects")
+        if ids[0, 0] != 0:
+            out.append(f"instances/{stem}.png: pixel (0, 0) is {ids[0, 0]}, must be background")
+            return out
+        mask = read_instances(layout.mask(s, v))
+        if mask.shape != ids.shape or not np.array_equal(mask, uorf_mask_from_instances(ids)):
+            out.append(f"{stem}_mask.png: does not match instances/{stem}.png")
+        else:
+            bg = uorf_background_level(layout.mask(s, v))
+            if bg != MASK_BG_LEVEL:
+                out.append(f"{stem}_mask.png: uORF background level {bg} != {MASK_BG_LEVEL}")
+            bgpix = mask == bg
+            want = ids == 0
+            want[0, 0] = False
+            if not np.array_equal(bgpix, want):
+                out.append(f"{stem}_mask.png: uORF background pixels differ from id-0 pixels")
+        depth = read_depth_exr(layout.depth(s, v))
+        if depth.shape != (res, res) or depth.dtype != np.float32:
+            out.append(
+                f"depth/{stem}.exr: {depth.dtype} {depth.shape}, expected float32 {(res, res)}"
+            )
+        else:
+            if np.isnan(depth).any():
+                out.append(f"depth/{stem}.exr: NaN values")
+            hit = ids > 0
+            if not (np.isfinite(depth[hit]).all() and (depth[hit] > 0).all()):
+                out.append(f"depth/{stem}.exr: non-finite or non-positive depth on object pixels")
+            if meta.get("ground") is not None and not np.isfinite(depth).all():
+                out.append(f"depth/{stem}.exr: {int((~np.isfinite(depth)).sum())} pixels miss "
+                           "the ground")  # fmt: skip
+        vm = meta["views"][v]
+        if Path(vm.get("image", "")).name != layout.rgb(s, v).name:
+            out.append(
+                f"sc{s:04d}.json: view {v} image {vm.get('image')!r} != {layout.rgb(s, v).name}"
+            )
+        c2w = np.asarray(vm["cam_to_world"], dtype=np.float64)
+        if not np.allclose(read_matrix_txt(layout.rt(s, v)), c2w, atol=1e-8):
+            out.append(f"{stem}_RT.txt: differs from sc{s:04d}.json cam_to_world")
+        azi = geometry.azimuth_rotation(float(vm["azimuth_deg"]))
+        if not np.allclose(read_matrix_txt(layout.azi_rot(s, v)), azi, atol=1e-8):
+            out.append(f"{stem}_azi_rot.txt: differs from the JSON azimuth")
+        K = np.asarray(vm["K"], dtype=np.float64)
+        if (
+            K.shape != (3, 3)
+            or not np.isclose(K[0, 2], res / 2)
+            or not np.isclose(K[1, 2], res / 2)
+        ):
+            out.append(f"sc{s:04d}.json: view {v} K {K.tolist()} is not a {res}px pixel-centre K")
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as e:
+        out.append(f"{stem}: unreadable ({type(e).__name__}: {e})")
+    return out
+
+
+def verify_split(root: str | Path, *, max_problems: int = 200) -> list[str]:
+    """Problems of split folder ``root`` (empty list = valid).
+
+    Args:
+        root: a split folder made by ``generate``.
+        max_problems: stop after this many.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        return [f"{root}: not a folder"]
+    mpath = root / "manifest.json"
+    if not mpath.is_file():
+        return [f"{mpath}: missing"]
+    try:
+        mf = read_json(mpath)
+        n, n_views, res = int(mf["n_scenes"]), int(mf["n_views"]), int(mf["resolution"])
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        return [f"{mpath}: unreadable or incomplete ({e})"]
+    layout = SplitLayout(root, n_views=n_views)
+    problems: list[str] = []
+    for s in range(n):
+        missing = [p for p in layout.scene_files(s) if not p.is_file()]
+        if missing:
+            problems.append(
+                f"scene {s}: {len(missing)} file(s) missing, e.g. {missing[0].relative_to(root)}"
+            )
+            continue
+        try:
+            meta = read_json(layout.scene_json(s))
+        except (OSError, ValueError) as e:
+            problems.append(f"sc{s:04d}.json: unreadable ({e})")
+            continue
+        for key, want in (("camera_convention", "opencv"), ("depth", "planar_z"),
+                          ("index", s), ("preset", mf.get("preset")), ("seed", mf.get("seed"))):  # fmt: skip
+            if meta.get(key) != want:
+                problems.append(f"sc{s:04d}.json: {key}={meta.get(key)!r}, expected {want!r}")
+        if len(meta.get("views", [])) != n_views:
+            problems.append(
+                f"sc{s:04d}.json: {len(meta.get('views', []))} views, expected {n_views}"
+            )
+            continue
+        for v in range(n_views):
+            problems += _view_problems(layout, meta, s, v, res)
+        if len(problems) >= max_problems:
+            return problems[:max_problems] + ["... (stopped)"]
+    known = {layout.rgb(s, v).name for s in range(n) for v in range(n_views)}
+    for p in sorted(root.glob("*.png")):
+        if p.name.endswith(UORF_NON_VIEW_SUFFIXES):
+            continue
+        if p.name not in known:
+            problems.append(f"{p.name}: stray PNG the uORF loader would read as a view")
+    extra = [s for s in layout.scene_indices() if s >= n]
+    if extra:
+        problems.append(f"scene JSONs beyond n_scenes={n}: {extra[:5]}")
+    return problems

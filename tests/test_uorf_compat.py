@@ -1,0 +1,94 @@
+"""The uORF loader's rules (KovenYu/uORF ``data/multiscenes_dataset.py``) hold on our files.
+
+The loader (1) globs ``*.png`` in the split folder and drops names with its known
+suffixes (``_mask``, ``_moved``, ...), (2) groups views by the ``sc%04d`` substring,
+(3) reads ``_mask.png`` with PIL ``convert('L')`` and takes the *second-lowest* grey
+level as background. Our fixture is written by the real writer from ray-cast passes
+(no bpy).
+"""
+
+from __future__ import annotations
+
+from glob import glob
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from generators.presets import get_preset
+from generators.sampling import make_scene
+from generators.spec import RenderSettings
+from generators.testing import write_raycast_split
+from generators.writer import ViewImages, write_scene
+from scenefmt import MASK_BG_LEVEL, SplitLayout, read_instances
+
+_UORF_SUFFIXES = ("_mask", "_mask_for_moving", "_moved", "_changed", "_mask_for_bg",
+                  "_mask_for_providing_bg", "_changed_mask")  # fmt: skip
+
+
+def uorf_filenames(root: Path, n_scenes: int) -> list[list[str]]:
+    """Re-implementation of the uORF loader's file discovery."""
+    filenames = set(glob(str(root / "*.png")))
+    for suffix in _UORF_SUFFIXES:
+        filenames -= set(glob(str(root / f"*{suffix}.png")))
+    filenames = sorted(filenames)
+    return [sorted(x for x in filenames if f"sc{i:04d}" in x) for i in range(n_scenes)]
+
+
+def uorf_fg_mask(mask_path: str) -> np.ndarray:
+    """uORF: background = second-lowest grey level after convert('L'); the rest is fg."""
+    mask_l = np.asarray(Image.open(mask_path).convert("L"))
+    greyscale = np.unique(mask_l)  # sorted
+    bg_color = greyscale[1]
+    return mask_l != bg_color, mask_l, greyscale
+
+
+@pytest.fixture(scope="module")
+def split(tmp_path_factory):
+    return write_raycast_split(tmp_path_factory.mktemp("uorf") / "train", n=2, resolution=32)
+
+
+def test_glob_and_grouping_find_exactly_our_views(split):
+    groups = uorf_filenames(split, 2)
+    layout = SplitLayout(split)
+    for s, files in enumerate(groups):
+        assert [Path(f).name for f in files] == [layout.rgb(s, v).name for v in range(4)]
+    # nothing of ours (instances, depth) is picked up as a view
+    assert not any("instances" in f or "depth" in f for g in groups for f in g)
+
+
+def test_second_lowest_grey_is_background_and_fg_matches_instances(split):
+    layout = SplitLayout(split)
+    for s in range(2):
+        for v in range(4):
+            fg, mask_l, levels = uorf_fg_mask(str(layout.mask(s, v)))
+            ids = read_instances(layout.instances(s, v))
+            assert levels[0] == 0 and levels[1] == MASK_BG_LEVEL
+            want = ids > 0
+            want[0, 0] = True  # the sentinel pixel reads as its own (lowest) level
+            assert np.array_equal(fg, want)
+            # every instance is its own grey level
+            for k in np.unique(ids[ids > 0]):
+                assert len(np.unique(mask_l[ids == k])) == 1
+
+
+def test_view_without_objects_keeps_background_rule(tmp_path):
+    """Even a view where no object is visible has background as second-lowest level."""
+    p = get_preset("clevr567")
+    spec = make_scene(p, "train", 0, 0, RenderSettings(resolution=16, samples=1))
+    layout = SplitLayout(tmp_path)
+    empty = np.zeros((16, 16), np.uint8)
+    views = [ViewImages(np.zeros((16, 16, 3), np.uint8), empty, np.ones((16, 16), np.float32))] * 4
+    write_scene(layout, spec, views)
+    fg, _, levels = uorf_fg_mask(str(layout.mask(0, 0)))
+    assert list(levels) == [0, MASK_BG_LEVEL]
+    assert fg.sum() == 1 and fg[0, 0]
+
+
+def test_rt_and_azi_rot_load_with_numpy(split):
+    layout = SplitLayout(split)
+    rt = np.loadtxt(layout.rt(0, 0))
+    azi = np.loadtxt(layout.azi_rot(0, 0))
+    assert rt.shape == (4, 4) and azi.shape == (3, 3)
+    assert np.allclose(azi @ azi.T, np.eye(3))
