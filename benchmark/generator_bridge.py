@@ -32,15 +32,15 @@ def _entry_point():
     for name in _MODULES:
         try:
             mod = importlib.import_module(name)
-        except ImportError as err:
+            fn = getattr(mod, "generate_dataset", None)
+        except ImportError as err:  # also a lazy package attribute that fails to import
             errors.append(f"{name}: {err}")
             continue
-        fn = getattr(mod, "generate_dataset", None)
         if callable(fn):
             return mod, fn
     raise DatasetUnavailable(
-        "the generator has no importable generate_dataset(cfg) (searched "
-        + ", ".join(_MODULES)
+        "the generator has no importable generate_dataset(cfg) ("
+        + "; ".join(errors or [f"searched {', '.join(_MODULES)}"])
         + "); use --data-source synthetic for a stand-in"
     )
 

@@ -226,6 +226,29 @@ class BlenderSession:
         bsdf.inputs["Metallic"].default_value = metallic
         return mat
 
+    def _textured_material(self, name: str, texture_id: int, size: int, tile: float, roughness: float):
+        """Principled BSDF whose base colour is a procedural texture, box-projected in
+        object coordinates (one repeat every ``tile`` world units; no UVs needed)."""
+        from assets_procedural import cached_texture_path
+
+        mat = self.bpy.data.materials.new(name)
+        nt = mat.node_tree
+        bsdf = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+        bsdf.inputs["Roughness"].default_value = roughness
+        bsdf.inputs["Specular IOR Level"].default_value = 0.25
+        coord = nt.nodes.new("ShaderNodeTexCoord")
+        mapping = nt.nodes.new("ShaderNodeMapping")
+        mapping.inputs["Scale"].default_value = (1.0 / tile, 1.0 / tile, 1.0 / tile)
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.image = self.bpy.data.images.load(str(cached_texture_path(texture_id, size)))
+        tex.image.colorspace_settings.name = "sRGB"
+        tex.projection = "BOX"
+        tex.extension = "REPEAT"
+        nt.links.new(coord.outputs["Object"], mapping.inputs["Vector"])
+        nt.links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
+        nt.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+        return mat
+
     def _add_object(self, name: str, mesh: geometry.TriMesh, material, pass_index: int,
                     location=(0.0, 0.0, 0.0), yaw_deg: float = 0.0):
         obj = self.bpy.data.objects.new(name, self._mesh(name, mesh))
@@ -248,8 +271,23 @@ class BlenderSession:
         self._configure(spec.render)
         sc = bpy.context.scene
         g = spec.ground
-        ground_mat = self._material("ground", g.color_linear, g.roughness, 0.25, 0.0)
-        self._add_object("ground", g.mesh(), ground_mat, 0)
+        if g.floor_texture_id is None:
+            ground_mat = self._material("ground", g.color_linear, g.roughness, 0.25, 0.0)
+        else:
+            ground_mat = self._textured_material(
+                "floor", g.floor_texture_id, g.texture_size or 256, g.texture_tile or 4.0, g.roughness
+            )
+        self._add_object("ground", g.floor_mesh(), ground_mat, 0)
+        walls = g.wall_mesh()
+        if walls is not None:
+            if g.wall_texture_id is None:
+                wall_mat = self._material("walls", g.color_linear, g.roughness, 0.25, 0.0)
+            else:
+                wall_mat = self._textured_material(
+                    "walls", g.wall_texture_id, g.texture_size or 256, g.texture_tile or 4.0,
+                    g.roughness,
+                )
+            self._add_object("walls", walls, wall_mat, 0)
         for o in spec.objects:
             m = MATERIALS[o.material]
             mat = self._material(

@@ -2,7 +2,8 @@
 
     generate --preset clevr567 [--split train|test] [--n N] [--out DIR] [--workers W]
              [--resolution 128] [--seed S] [--samples 16] [--denoise/--no-denoise]
-             [--bounces 4] [--shard i/n] [--no-progress]
+             [--bounces 4] [--threads T] [--shard i/n] [--camera-radius R]
+             [--source DIR] [--no-progress]
     generate verify DIR
     generate preview --preset NAME [--n 4] [--out DIR]
 
@@ -82,6 +83,8 @@ def _gen_parser() -> _Parser:
     ap.add_argument(
         "--shard", type=_shard, default=(0, 1), help="i/n: only scenes with index %% n == i"
     )
+    ap.add_argument("--camera-radius", type=float, default=None,
+                    help="override the preset's camera radius (closer cameras for small datasets)")
     ap.add_argument("--source", type=Path, default=None,
                     help="derived presets (clevr567-gray): folder of the source renders to convert")  # fmt: skip
     ap.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
@@ -98,7 +101,7 @@ def _generate(argv: list[str]) -> int:
             preset=a.preset, split=a.split, n=a.n, out=a.out, resolution=a.resolution,
             seed=a.seed, samples=a.samples, denoise=a.denoise, bounces=a.bounces,
             workers=a.workers, threads=a.threads, shard=a.shard, progress=a.progress,
-            source=a.source,
+            source=a.source, camera_radius=a.camera_radius,
         )  # fmt: skip
         summary = generate_dataset(cfg)
     except (ValueError, BpyMissingError) as e:

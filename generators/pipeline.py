@@ -1,494 +1,470 @@
-"""``generate_dataset(cfg)``: the importable generator (the ``generate`` CLI wraps it).
+"""Dataset generation: GenerateConfig -> process pool of Blender sessions -> split folder.
 
 Data flow::
 
-    GenerateConfig -> for each scene index of this shard (skipping complete ones):
-        sampling.make_scene (pure Python, seeded) -> blender_backend.BlenderSession
-        (one per worker process, recycled every ``recycle_after`` scenes)
-        -> imageops (linear -> sRGB 8-bit, optional Rec.601 grey) -> writer
-    -> GenerateSummary
+    GenerateConfig (validated on construction, writes nothing)
+      -> checks: --out writable, an existing manifest describes the same dataset,
+         bpy importable when something must be rendered
+      -> manifest.json (atomic, "status": "in_progress")
+      -> this shard's scene indices minus the complete ones
+         -> derived presets: convert complete source scenes (no Cycles)
+         -> worker processes (spawn; one BlenderSession each, recycled every
+            ``recycle_after`` scenes): make_scene -> render_scene -> write_scene
+      -> manifest.json ("status": "complete" once every scene of the split exists)
+      -> GenerateSummary
 
-``manifest.json`` is written first (it describes the target split, identical for
-every shard); scenes are complete only once their ``sc%04d.json`` exists, so a
-killed run resumes where it stopped. ``clevr567-gray`` converts the matching
-``clevr567`` render (sibling folder ``<out>/../../clevr567/<split>`` or
-``cfg.source``) instead of rendering again when that scene is there.
+:func:`generate_dataset` is the importable entry point: the ``generate`` CLI and
+the benchmark (``benchmark.generator_bridge``) call it. Nothing here imports bpy;
+only the worker processes do, through ``blender_backend``.
 """
 
 from __future__ import annotations
 
+import atexit
+import json
+import concurrent.futures as cf
+import multiprocessing as mp
 import os
-import shutil
-import tempfile
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field, replace
-from multiprocessing import get_context
 from pathlib import Path
 
-from generators.imageops import GRAYSCALE_FORMULA, grayscale_rec601, linear_to_srgb8
-from generators.presets import Preset, get_preset
-from generators.spec import RenderSettings, SceneSpec
-from generators.writer import ViewImages, manifest, write_scene
-from scenefmt import (
-    SplitLayout,
-    atomic_write_bytes,
-    atomic_write_json,
-    is_scene_complete,
-    read_json,
-    read_rgb,
-    write_rgb,
-)
+import scenefmt
+from generators.presets import PRESETS, Preset, get_preset, scene_preset
+from generators.spec import RenderSettings
+from generators.writer import manifest
 
-__all__ = ["GenerateConfig", "GenerateSummary", "cpu_cores", "default_out", "generate_dataset"]
+MAX_SCENES = 10_000  # sc%04d file names
 
-_DEFAULT = RenderSettings()
+#: Manifest keys that identify a dataset: a rerun into the same folder must match them.
+IDENTITY_KEYS = ("preset", "split", "seed", "resolution", "n_views", "render", "preset_config")
 
 
 def cpu_cores() -> int:
     """CPU cores this process may use."""
     try:
         return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
+    except AttributeError:  # pragma: no cover - non-Linux
         return os.cpu_count() or 1
-
-
-def default_out(preset: str, split: str) -> Path:
-    """``data/{preset}/{split}`` (relative to the working directory)."""
-    return Path("data") / preset / split
 
 
 @dataclass(frozen=True)
 class GenerateConfig:
-    """What to generate (every field is a ``generate`` CLI option).
+    """One ``generate`` run (CLI flags map 1:1 onto these fields). Validated on creation.
 
     Attributes:
-        preset: registered preset name (``generators.presets.PRESETS``).
-        split: ``train`` or ``test``; None = the preset's first split.
-        n: scenes in the split (indices 0..n-1); None = the preset's split size.
-        out: split folder; None = ``data/{preset}/{split}``.
-        resolution: square image size in pixels (>= 16).
-        seed: dataset seed (>= 0); scene seeds derive from it.
+        preset: preset name (``generators.presets.PRESETS``).
+        split: ``train`` / ``test``; default the preset's first split.
+        n: number of scenes (default: the preset's split size). Scene i does not
+            depend on n, so a larger n extends a dataset.
+        out: split folder (default ``data/{preset}/{split}``).
+        resolution: square image size (>= 16).
+        seed: dataset seed (>= 0).
         samples: Cycles samples per pixel.
-        denoise: OpenImageDenoise on the colour pass.
-        bounces: max light bounces (total and diffuse).
-        workers: worker processes; None = cores // 2 (>= 1). 1 renders in this process.
-        threads: Cycles threads per worker; None = cores // workers (>= 1).
-        shard: (i, n): render only scene indices with ``index % n == i``.
-        progress: tqdm progress bar and end summary on stderr.
-        recycle_after: scenes per Blender session before it is restarted.
-        source: folder of the ``scene_source`` preset's split whose renders a derived
-            preset (``clevr567-gray``) converts; None = the sibling default.
+        denoise: OpenImageDenoise on/off.
+        bounces: max light bounces (diffuse bounces are capped by it too).
+        workers: worker processes (default ``max(1, cores // 2)``: on 2 cores one
+            2-thread Blender beat two 1-thread ones, see ``docs/format.md``).
+        threads: Cycles threads per worker (default ``max(1, cores // workers)``).
+        shard: ``(i, n)``: only scenes with ``index % n == i``.
+        progress: tqdm progress bar on stderr.
+        source: derived presets (``clevr567-gray``): the colour split to convert
+            (default the sibling folder ``{out}/../../{source preset}/{split}``).
+        camera_radius: override the preset's camera radius (closer cameras for
+            small CPU-scale datasets); part of the dataset identity.
+        recycle_after: scenes per worker process before it is replaced (Blender
+            leaks a little memory per scene).
     """
 
-    preset: str = "clevr567"
+    preset: str
     split: str | None = None
     n: int | None = None
-    out: Path | None = None
+    out: str | os.PathLike | None = None
     resolution: int = 128
     seed: int = 0
-    samples: int = _DEFAULT.samples
-    denoise: bool = _DEFAULT.denoise
-    bounces: int = _DEFAULT.max_bounces
+    samples: int = RenderSettings.samples
+    denoise: bool = RenderSettings.denoise
+    bounces: int = RenderSettings.max_bounces
     workers: int | None = None
     threads: int | None = None
     shard: tuple[int, int] = (0, 1)
     progress: bool = True
+    source: str | os.PathLike | None = None
+    camera_radius: float | None = None
     recycle_after: int = 40
-    source: Path | None = None
 
     def __post_init__(self) -> None:
-        p = get_preset(self.preset)  # ValueError listing the known presets
-        if self.split is not None:
-            p.split_size(self.split)  # ValueError naming the preset's splits
-        if self.n is not None and int(self.n) <= 0:
-            raise ValueError(f"n (--n) must be a positive scene count, got {self.n}")
-        if self.n is not None and int(self.n) > 10_000:
-            raise ValueError(f"n (--n) must be <= 10000 (sc%04d file names), got {self.n}")
-        if int(self.resolution) < 16:
-            raise ValueError(f"resolution (--resolution) must be >= 16, got {self.resolution}")
-        if int(self.seed) < 0:
-            raise ValueError(f"seed (--seed) must be >= 0, got {self.seed}")
-        if int(self.samples) < 1:
-            raise ValueError(f"samples (--samples) must be >= 1, got {self.samples}")
-        if int(self.bounces) < 0:
-            raise ValueError(f"bounces (--bounces) must be >= 0, got {self.bounces}")
-        if self.workers is not None and int(self.workers) < 1:
-            raise ValueError(f"workers (--workers) must be >= 1, got {self.workers}")
-        if self.threads is not None and int(self.threads) < 1:
-            raise ValueError(f"threads must be >= 1, got {self.threads}")
-        i, n = self.shard
-        if not (n >= 1 and 0 <= i < n):
-            raise ValueError(f"shard (--shard i/n) needs 0 <= i < n, got {i}/{n}")
+        if self.preset not in PRESETS:
+            get_preset(self.preset)  # raises ValueError listing the known presets
+        p = PRESETS[self.preset]
+        if self.split is not None and self.split not in p.split_names():
+            raise ValueError(
+                f"--split: preset {p.name!r} has no split {self.split!r} "
+                f"(it has: {', '.join(p.split_names())})"
+            )
+        if self.n is not None and (not isinstance(self.n, int) or self.n < 1):
+            raise ValueError(f"--n must be a positive integer, got {self.n!r}")
+        if self.n is not None and self.n > MAX_SCENES:
+            raise ValueError(f"--n must be <= {MAX_SCENES} (sc%04d file names), got {self.n}")
+        if not isinstance(self.resolution, int) or self.resolution < 16:
+            raise ValueError(f"--resolution must be an integer >= 16, got {self.resolution!r}")
+        if not isinstance(self.seed, int) or not 0 <= self.seed < 9_000_000_000:
+            raise ValueError(f"--seed must be an integer in [0, 9e9), got {self.seed!r}")
+        if self.samples < 1:
+            raise ValueError(f"--samples must be >= 1, got {self.samples}")
+        if self.bounces < 0:
+            raise ValueError(f"--bounces must be >= 0, got {self.bounces}")
+        i, k = self.shard
+        if not (k >= 1 and 0 <= i < k):
+            raise ValueError(f"--shard must be i/n with 0 <= i < n, got {i}/{k}")
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"--workers must be >= 1, got {self.workers}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {self.threads}")
         if self.recycle_after < 1:
             raise ValueError(f"recycle_after must be >= 1, got {self.recycle_after}")
+        if self.camera_radius is not None:
+            p.with_camera_radius(self.camera_radius)  # validates
 
-    # ------------------------------------------------------------- resolved values
+    # ---------------------------------------------------------------- resolved values
 
     def preset_obj(self) -> Preset:
-        return get_preset(self.preset)
+        """The preset, with the camera-radius override applied."""
+        p = get_preset(self.preset)
+        return p if self.camera_radius is None else p.with_camera_radius(self.camera_radius)
 
     def split_name(self) -> str:
-        return self.split if self.split is not None else self.preset_obj().split_names()[0]
+        return self.split if self.split is not None else get_preset(self.preset).split_names()[0]
 
     def n_scenes(self) -> int:
-        return (
-            int(self.n) if self.n is not None else self.preset_obj().split_size(self.split_name())
-        )
+        return self.n if self.n is not None else get_preset(self.preset).split_size(self.split_name())
 
     def out_dir(self) -> Path:
-        return (
-            Path(self.out) if self.out is not None else default_out(self.preset, self.split_name())
-        )
-
-    def n_workers(self) -> int:
-        # Measured on 2 cores (docs/format.md, ENV.md): one 2-thread Cycles process beats
-        # two 1-thread processes (1.38 vs 1.99 s/view), so pair cores per worker.
-        return int(self.workers) if self.workers is not None else max(1, cpu_cores() // 2)
-
-    def n_threads(self) -> int:
-        if self.threads is not None:
-            return int(self.threads)
-        return max(1, cpu_cores() // self.n_workers())
+        return Path(self.out) if self.out is not None else Path("data") / self.preset / self.split_name()
 
     def render_settings(self) -> RenderSettings:
-        b = int(self.bounces)
+        d = RenderSettings()
         return replace(
-            _DEFAULT,
-            resolution=int(self.resolution),
-            samples=int(self.samples),
-            denoise=bool(self.denoise),
-            max_bounces=b,
-            diffuse_bounces=min(_DEFAULT.diffuse_bounces, b),
-            glossy_bounces=min(_DEFAULT.glossy_bounces, b),
-        )
+            d, resolution=self.resolution, samples=self.samples, denoise=self.denoise,
+            max_bounces=self.bounces, diffuse_bounces=min(d.diffuse_bounces, self.bounces),
+        )  # fmt: skip
+
+    def n_workers(self) -> int:
+        return self.workers if self.workers is not None else max(1, cpu_cores() // 2)
+
+    def n_threads(self) -> int:
+        return self.threads if self.threads is not None else max(1, cpu_cores() // self.n_workers())
+
+    def indices(self) -> tuple[int, ...]:
+        """Scene indices of this shard."""
+        i, k = self.shard
+        return tuple(s for s in range(self.n_scenes()) if s % k == i)
 
     def source_dir(self) -> Path | None:
-        p = self.preset_obj()
+        p = get_preset(self.preset)
         if p.scene_source is None:
             return None
         if self.source is not None:
             return Path(self.source)
-        return self.out_dir().parent.parent / p.scene_source / self.split_name()
+        return self.out_dir().absolute().parent.parent / p.scene_source / self.split_name()
 
 
 @dataclass(frozen=True)
 class GenerateSummary:
-    """What one ``generate_dataset`` call did.
+    """What one :func:`generate_dataset` call did.
 
     Attributes:
         out: the split folder.
-        n_scenes: scenes in the split (all shards).
-        scenes_this_run: scenes of this shard that were missing and were made now.
-        scenes_skipped: scenes of this shard already complete on disk.
-        scenes_converted: scenes made by converting a source render (no Cycles).
-        n_views: views per scene.
+        indices: scene indices of this shard.
+        scenes_this_run: scenes written now (rendered + converted).
+        scenes_converted: of those, made from a source split without Cycles.
+        scenes_skipped: complete before the run (not touched).
+        views_rendered: views rendered by Cycles now.
         wall_s: wall time of the call.
-        render_s: summed seconds inside Cycles' render calls.
-        s_per_view: wall seconds per view made now (nan if none).
-        render_s_per_view: Cycles seconds per rendered view (nan if none).
+        render_s: seconds inside Cycles' render calls, summed over workers.
+        workers / threads: pool size and Cycles threads per worker.
+        complete: every scene of the split (all shards) is complete.
     """
 
     out: Path
     preset: str
     split: str
     n_scenes: int
+    indices: tuple[int, ...]
     scenes_this_run: int
-    scenes_skipped: int
     scenes_converted: int
-    n_views: int
+    scenes_skipped: int
+    views_rendered: int
     wall_s: float
     render_s: float
-    views_rendered: int
     workers: int
     threads: int
-    s_per_view: float = float("nan")
-    render_s_per_view: float = float("nan")
-    indices: tuple[int, ...] = field(default=(), repr=False)
+    complete: bool
+    n_views: int = 4
+    failures: tuple[str, ...] = field(default=())
+
+    @property
+    def views_written(self) -> int:
+        return self.scenes_this_run * self.n_views
+
+    @property
+    def s_per_view(self) -> float:
+        """Wall seconds per written view (0 if nothing was written)."""
+        return self.wall_s / self.views_written if self.views_written else 0.0
 
     def line(self) -> str:
         """One-line human summary."""
+        cyc = f"Cycles {self.render_s / self.views_rendered:.3f} s/view; " if self.views_rendered else ""
+        conv = f", {self.scenes_converted} converted" if self.scenes_converted else ""
         return (
-            f"{self.preset}/{self.split}: {self.scenes_this_run} scenes "
-            f"({self.scenes_this_run * self.n_views} views) made, {self.scenes_skipped} already "
-            f"complete, in {self.wall_s:.1f} s = {self.s_per_view:.3f} s/view "
-            f"(Cycles {self.render_s_per_view:.3f} s/view; {self.workers} worker(s) x "
-            f"{self.threads} thread(s)) -> {self.out}"
+            f"{self.preset}/{self.split}: {self.scenes_this_run} scenes ({self.views_written} views) "
+            f"made{conv}, {self.scenes_skipped} already complete, in {self.wall_s:.1f} s = "
+            f"{self.s_per_view:.3f} s/view ({cyc}{self.workers} worker(s) x {self.threads} "
+            f"thread(s)) -> {self.out}" + ("" if self.complete else " [split not complete yet]")
         )
 
 
-# --------------------------------------------------------------------------- checks
+# ---------------------------------------------------------------------------- checks
 
 
-def check_writable(out: Path) -> None:
-    """ValueError unless ``out`` exists as a writable folder or can be created."""
-    p = Path(out).absolute()
-    if p.exists() and not p.is_dir():
-        raise ValueError(f"out (--out) {out} exists and is not a folder")
-    q = p
-    while not q.exists():
-        q = q.parent
-    if not q.is_dir() or not os.access(q, os.W_OK | os.X_OK):
-        raise ValueError(f"out (--out) {out} is not writable ({q} does not allow writing)")
-    # os.access says yes to root everywhere: probe with a real (deleted) temp folder.
+def _check_writable(out: Path) -> None:
+    p = out.absolute()
+    while not p.exists() and p.parent != p:
+        p = p.parent
+    if not p.is_dir():
+        raise ValueError(f"--out: {p} exists and is not a folder; pass a writable folder with --out")
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise ValueError(f"--out: {p} is not writable; pass a writable folder with --out")
+
+
+def _check_existing_manifest(path: Path, new: dict) -> None:
+    if not path.is_file():
+        return
     try:
-        probe = Path(tempfile.mkdtemp(prefix=".generate-probe-", dir=q))
-        probe.rmdir()
-    except OSError as e:
-        raise ValueError(f"out (--out) {out} is not writable ({q}: {e.strerror})") from None
-
-
-# --------------------------------------------------------------------------- one scene
-
-
-@dataclass(frozen=True)
-class _Job:
-    preset: str
-    split: str
-    index: int
-    seed: int
-    render: RenderSettings
-    out: Path
-    source: Path | None
-
-
-_SESSION = None  # the worker process's BlenderSession
-_SESSION_SCENES = 0
-
-
-def _session(threads: int, recycle_after: int):
-    global _SESSION, _SESSION_SCENES
-    if _SESSION is not None and _SESSION_SCENES >= recycle_after:
-        _SESSION.close()
-        _SESSION = None
-    if _SESSION is None:
-        from generators.blender_backend import BlenderSession
-
-        _SESSION = BlenderSession(threads=threads)
-        _SESSION_SCENES = 0
-    _SESSION_SCENES += 1
-    return _SESSION
-
-
-def close_session() -> None:
-    """Close this process's Blender session (if any)."""
-    global _SESSION
-    if _SESSION is not None:
-        _SESSION.close()
-        _SESSION = None
-
-
-def _convert_from_source(job: _Job, spec: SceneSpec, layout: SplitLayout) -> SceneSpec | None:
-    """Write a grey scene by converting the source preset's render; None if unusable."""
-    if job.source is None:
-        return None
-    src = SplitLayout(job.source, n_views=layout.n_views)
-    if not is_scene_complete(src, job.index):
-        return None
-    try:
-        meta = read_json(src.scene_json(job.index))
-        same = (
-            int(meta["scene_seed"]) == spec.scene_seed
-            and int(meta["attempt"]) == spec.attempt
-            and int(meta["render"]["width"]) == job.render.resolution
+        old = scenefmt.read_json(path)
+    except (OSError, ValueError):
+        return  # unreadable manifest: rewritten
+    new = json.loads(json.dumps(new))  # tuples -> lists, as read back from disk
+    diff = [k for k in IDENTITY_KEYS if old.get(k) != new.get(k)]
+    if diff:
+        shown = ", ".join(f"{k} {old.get(k)!r} vs {new.get(k)!r}" for k in diff
+                          if k not in ("render", "preset_config"))  # fmt: skip
+        raise ValueError(
+            f"--out: {path.parent} holds another dataset (different {', '.join(diff)}"
+            f"{': ' + shown if shown else ''}); pass another --out or delete that folder"
         )
-    except (OSError, ValueError, KeyError, TypeError):
+
+
+def _remove_stale_temp_files(layout: scenefmt.SplitLayout, indices: set[int]) -> None:
+    """Delete temp files (``.{name}.*.tmp*``) a killed run left for these scenes."""
+    for folder in (layout.root, layout.root / "instances", layout.root / "depth"):
+        if not folder.is_dir():
+            continue
+        for f in folder.iterdir():
+            if not (f.name.startswith(".") and ".tmp" in f.name):
+                continue
+            target = f.name[1:].split(".")[0]  # ".00004_sc0001_az00_RT.txt.ab12.tmp" -> stem
+            try:
+                if target.startswith("sc"):
+                    scene = int(target[2:])
+                else:
+                    scene = int(target.split("_sc")[1][:4])
+            except (ValueError, IndexError):
+                continue
+            if scene in indices:
+                f.unlink(missing_ok=True)
+
+
+def _usable_source(cfg: GenerateConfig, render: RenderSettings) -> scenefmt.SplitLayout | None:
+    """The colour split a derived preset may convert: same scenes, same render settings."""
+    src = cfg.source_dir()
+    if src is None or not (src / "manifest.json").is_file():
         return None
-    if not same:
+    try:
+        m = scenefmt.read_json(src / "manifest.json")
+    except (OSError, ValueError):
         return None
-    src_render = RenderSettings.from_json(meta["render"])
-    s = job.index
-    for v in range(layout.n_views):
-        write_rgb(layout.rgb(s, v), grayscale_rec601(read_rgb(src.rgb(s, v))))
-        for a, b in zip(src.view_files(s, v)[1:], layout.view_files(s, v)[1:], strict=True):
-            atomic_write_bytes(b, a.read_bytes())
-    out = replace(spec, render=src_render, extra=spec.extra + (("rgb_source", "converted"),))
-    atomic_write_json(
-        layout.scene_json(s), out.to_json([layout.rgb(s, v).name for v in range(layout.n_views)])
+    sp = scene_preset(cfg.preset_obj())
+    if cfg.camera_radius is not None:
+        sp = sp.with_camera_radius(cfg.camera_radius)
+    ok = (
+        m.get("preset") == sp.name
+        and m.get("split") == cfg.split_name()
+        and m.get("seed") == cfg.seed
+        and m.get("resolution") == cfg.resolution
+        and m.get("n_views") == sp.camera.n_views
+        and m.get("render") == render.to_json()
+        and m.get("preset_config") == json.loads(json.dumps(sp.to_json()))
     )
-    return out
+    return scenefmt.SplitLayout(src, n_views=sp.camera.n_views) if ok else None
 
 
-def render_one(job: _Job, threads: int, recycle_after: int) -> dict:
-    """Sample, render and write one scene (runs in a worker process or in-process).
+# ---------------------------------------------------------------------------- workers
+
+_SESSION = None
+_THREADS = 1
+
+
+def _worker_init(threads: int) -> None:
+    """Pool initializer: remember the thread count; die with the parent (Linux)."""
+    global _THREADS
+    _THREADS = threads
+    try:  # PR_SET_PDEATHSIG = 1: a killed driver takes its workers with it
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+
+
+def render_one(
+    preset: Preset, split: str, index: int, seed: int, render: RenderSettings, out: str
+) -> dict[str, float]:
+    """Sample, render and write scene ``index`` in this process (the pool task).
 
     Returns:
-        ``{"index", "views", "render_s", "wall_s", "converted"}``.
+        ``{"index", "render_s" (Cycles time, all views), "scene_s" (wall)}``.
     """
+    global _SESSION
+    from generators.blender_backend import BlenderSession
+    from generators.imageops import linear_to_srgb8
     from generators.sampling import make_scene
+    from generators.writer import ViewImages, write_scene
 
     t0 = time.perf_counter()
-    preset = get_preset(job.preset)
-    layout = SplitLayout(job.out, n_views=preset.camera.n_views)
-    spec = make_scene(preset, job.split, job.index, job.seed, job.render)
-    spec = replace(spec, preset=preset.name)
-    if preset.grayscale:
-        spec = replace(spec, extra=(("grayscale", GRAYSCALE_FORMULA),))
-        if _convert_from_source(job, spec, layout) is not None:
-            return {"index": job.index, "views": 0, "render_s": 0.0,
-                    "wall_s": time.perf_counter() - t0, "converted": True}  # fmt: skip
-        spec = replace(spec, extra=spec.extra + (("rgb_source", "rendered"),))
-    sess = _session(threads, recycle_after)
-    passes = sess.render_scene(spec)
-    views = []
-    for p in passes:
-        rgb8 = linear_to_srgb8(p.rgb_linear)
-        if preset.grayscale:
-            rgb8 = grayscale_rec601(rgb8)
-        views.append(ViewImages(rgb8, p.ids, p.depth_z))
-    write_scene(layout, spec, views)
+    if _SESSION is None:
+        _SESSION = BlenderSession(threads=_THREADS)
+        atexit.register(_SESSION.close)
+    spec = make_scene(preset, split, index, seed, render)
+    passes = _SESSION.render_scene(spec)
+    views = [ViewImages(linear_to_srgb8(v.rgb_linear), v.ids, v.depth_z) for v in passes]
+    layout = scenefmt.SplitLayout(out, n_views=preset.camera.n_views)
+    write_scene(layout, spec, views, grayscale_preset=preset.name if preset.grayscale else None)
     return {
-        "index": job.index,
-        "views": len(views),
-        "render_s": float(sum(p.render_s for p in passes)),
-        "wall_s": time.perf_counter() - t0,
-        "converted": False,
+        "index": index,
+        "render_s": sum(v.render_s for v in passes),
+        "scene_s": time.perf_counter() - t0,
     }
 
 
-def _worker_init() -> None:
-    import signal
-    import sys
-
-    # Workers ignore Ctrl-C; the parent cancels them.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # spawn copies the parent's sys.path; if the parent imported bpy, that holds
-    # bpy's own scripts/modules folder, whose ``bpy`` package would shadow the real
-    # module (-> "No module named '_bpy'"). bpy re-adds these paths on import.
-    marker = os.sep + "bpy" + os.sep
-    sys.path[:] = [p for p in sys.path if marker not in p]
-
-
-# --------------------------------------------------------------------------- driver
+# ---------------------------------------------------------------------------- driver
 
 
 def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
-    """Generate (or complete) one split folder.
+    """Generate (or finish) one split; the function behind ``generate``.
+
+    Resumable: complete scenes (``scenefmt.is_scene_complete``) are skipped and not
+    touched, so a killed run finishes when run again. Deterministic: scenes, ids,
+    masks, depth and JSON do not depend on ``workers``/``threads``/``shard``.
 
     Args:
-        cfg: what to make (validated on construction).
+        cfg: the run configuration.
 
     Returns:
-        :class:`GenerateSummary`.
+        A :class:`GenerateSummary`.
 
     Raises:
-        ValueError: bad config (unknown preset, bad count, unwritable folder, ...);
-            nothing is written.
-        generators.blender_backend.BpyMissingError (an ImportError): bpy missing;
-            nothing is written.
-        RuntimeError: a scene failed to render (completed scenes stay on disk).
+        ValueError: bad ``--out`` or a folder holding another dataset (nothing written).
+        generators.blender_backend.BpyMissingError (an ImportError): bpy is needed
+            but not installed (nothing written).
     """
-    from generators.blender_backend import BpyMissingError, bpy_available
-
     t0 = time.perf_counter()
     preset = cfg.preset_obj()
-    split = cfg.split_name()
-    n = cfg.n_scenes()
-    out = cfg.out_dir()
+    split, n, out = cfg.split_name(), cfg.n_scenes(), cfg.out_dir()
     render = cfg.render_settings()
-    check_writable(out)
-    layout = SplitLayout(out, n_views=preset.camera.n_views)
-    i_shard, n_shard = cfg.shard
-    indices = [s for s in range(n) if s % n_shard == i_shard]
-    todo = [s for s in indices if not is_scene_complete(layout, s)]
-    source = cfg.source_dir()
-    need_bpy = bool(todo) and not (
-        source is not None
-        and all(is_scene_complete(SplitLayout(source, layout.n_views), s) for s in todo)
-    )
-    if need_bpy and not bpy_available():
-        raise BpyMissingError(
-            "cannot import bpy; install Blender's Python module: pip install bpy==5.0.1 "
-            "(Python 3.11, numpy<2)"
-        )
-    mf = manifest(preset, split, n, render.resolution, cfg.seed, render)
-    if layout.manifest.is_file():
-        try:
-            old = read_json(layout.manifest)
-        except (OSError, ValueError):
-            old = {}
-        for key in ("preset", "split", "seed", "resolution", "n_views"):
-            if key in old and old[key] != mf[key]:
-                raise ValueError(
-                    f"out (--out) {out} holds {key}={old[key]!r}, this run asks for "
-                    f"{mf[key]!r}; pass another --out or delete the folder"
-                )
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ValueError(f"out (--out) {out} cannot be created ({e.strerror})") from None
-    mf = manifest(preset, split, n, render.resolution, cfg.seed, render)
-    if not layout.manifest.is_file() or read_json(layout.manifest) != mf:
-        atomic_write_json(layout.manifest, mf)
+    _check_writable(out)
+    layout = scenefmt.SplitLayout(out, n_views=preset.camera.n_views)
+    new_manifest = manifest(preset, split, n, cfg.resolution, cfg.seed, render, "in_progress")
+    _check_existing_manifest(layout.manifest, new_manifest)
 
-    jobs = [_Job(preset.name, split, s, int(cfg.seed), render, out, source) for s in todo]
-    workers = max(1, min(cfg.n_workers(), len(jobs)))
-    threads = cfg.n_threads()
-    results: list[dict] = []
-    from tqdm import tqdm
+    indices = cfg.indices()
+    todo = [i for i in indices if not scenefmt.is_scene_complete(layout, i)]
+    convert: list[int] = []
+    if preset.scene_source and todo:
+        src = _usable_source(cfg, render)
+        if src is not None:
+            convert = [i for i in todo if scenefmt.is_scene_complete(src, i)]
+    convert_set = set(convert)
+    to_render = [i for i in todo if i not in convert_set]
+    if to_render:
+        from generators import blender_backend
 
-    bar = tqdm(
-        total=len(jobs), unit="scene", disable=not cfg.progress or not jobs,
-        desc=f"{preset.name}/{split}", dynamic_ncols=True,
-    )  # fmt: skip
+        if not blender_backend.bpy_available():
+            raise blender_backend.BpyMissingError(
+                "bpy (Blender as a Python module) is not installed; fix: pip install bpy==5.0.1 "
+                "(Python 3.11, numpy<2)"
+            )
+
+    out.mkdir(parents=True, exist_ok=True)
+    scenefmt.atomic_write_json(layout.manifest, new_manifest)
+    _remove_stale_temp_files(layout, set(indices))
+
+    bar = None
+    if cfg.progress and todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(todo), unit="scene", desc=f"{preset.name}/{split}", dynamic_ncols=True)
+    workers = min(cfg.n_workers(), max(1, len(to_render)))
+    render_s = 0.0
+    n_conv = n_rend = 0
     try:
-        if workers == 1:
-            try:
-                for job in jobs:
-                    results.append(render_one(job, threads, cfg.recycle_after))
+        if convert:
+            from generators.writer import convert_scene_grayscale
+
+            assert src is not None
+            for i in convert:
+                convert_scene_grayscale(src, layout, i, preset.name)
+                n_conv += 1
+                if bar is not None:
                     bar.update(1)
-            finally:
-                close_session()
-        else:
-            ctx = get_context("spawn")  # bpy is not fork-safe
-            with ProcessPoolExecutor(
-                max_workers=workers, mp_context=ctx, initializer=_worker_init,
+        if to_render:
+            with cf.ProcessPoolExecutor(
+                max_workers=workers,
+                mp_context=mp.get_context("spawn"),
+                initializer=_worker_init,
+                initargs=(cfg.n_threads(),),
                 max_tasks_per_child=cfg.recycle_after,
-            ) as pool:  # fmt: skip
-                futs = {pool.submit(render_one, j, threads, cfg.recycle_after): j for j in jobs}
-                pending = set(futs)
-                while pending:
-                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for f in done:
-                        err = f.exception()
-                        if err is not None:
-                            for p in pending:
-                                p.cancel()
-                            raise RuntimeError(
-                                f"scene {futs[f].index} failed: {type(err).__name__}: {err}"
-                            ) from err
-                        results.append(f.result())
-                        bar.update(1)
+            ) as pool:
+                futures = [
+                    pool.submit(render_one, preset, split, i, cfg.seed, render, str(out.absolute()))
+                    for i in to_render
+                ]
+                try:
+                    for fut in cf.as_completed(futures):
+                        render_s += fut.result()["render_s"]
+                        n_rend += 1
+                        if bar is not None:
+                            bar.update(1)
+                except BaseException:
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
     finally:
-        bar.close()
-    wall = time.perf_counter() - t0
-    n_views_made = sum(r["views"] for r in results)
-    made_views = len(results) * preset.camera.n_views
-    render_s = float(sum(r["render_s"] for r in results))
-    summary = GenerateSummary(
+        if bar is not None:
+            bar.close()
+
+    complete = all(scenefmt.is_scene_complete(layout, i) for i in range(n))
+    if complete:
+        scenefmt.atomic_write_json(
+            layout.manifest, manifest(preset, split, n, cfg.resolution, cfg.seed, render, "complete")
+        )
+    return GenerateSummary(
         out=out,
         preset=preset.name,
         split=split,
         n_scenes=n,
-        scenes_this_run=len(results),
+        indices=indices,
+        scenes_this_run=n_rend + n_conv,
+        scenes_converted=n_conv,
         scenes_skipped=len(indices) - len(todo),
-        scenes_converted=sum(bool(r["converted"]) for r in results),
-        n_views=preset.camera.n_views,
-        wall_s=wall,
+        views_rendered=n_rend * preset.camera.n_views,
+        wall_s=time.perf_counter() - t0,
         render_s=render_s,
-        views_rendered=n_views_made,
-        workers=workers,
-        threads=threads,
-        s_per_view=wall / made_views if made_views else float("nan"),
-        render_s_per_view=render_s / n_views_made if n_views_made else float("nan"),
-        indices=tuple(sorted(r["index"] for r in results)),
+        workers=workers if to_render else 0,
+        threads=cfg.n_threads(),
+        complete=complete,
+        n_views=preset.camera.n_views,
     )
-    return summary
 
 
-def remove_split(out: Path) -> None:  # pragma: no cover - convenience for notebooks
-    """Delete a split folder (only if it holds a manifest: guards against typos)."""
-    out = Path(out)
-    if not (out / "manifest.json").is_file():
-        raise ValueError(f"{out} holds no manifest.json; refusing to delete it")
-    shutil.rmtree(out)
+__all__ = ["GenerateConfig", "GenerateSummary", "cpu_cores", "generate_dataset", "render_one"]

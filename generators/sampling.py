@@ -120,6 +120,59 @@ def _layout(preset: Preset, rules: ObjectRules, rng: np.random.Generator) -> lis
     )
 
 
+def _room_layout(preset: Preset, rng: np.random.Generator) -> tuple[list[ObjectSpec], GroundSpec]:
+    """Chairs (procedural assets) placed like CLEVR objects, plus a textured room.
+
+    Draw order: chair count, asset id(s), then per chair: position tries, yaw, colour;
+    finally the background id.
+    """
+    from assets_procedural import background_params
+
+    room = preset.room
+    assert room is not None
+    lo, hi = room.n_chairs
+    lim = preset.xy_range
+    colors = tuple(CLEVR_COLORS)
+    for _ in range(_MAX_LAYOUT_RESTARTS):
+        n = int(rng.integers(lo, hi + 1))
+        if room.same_shape:
+            ids = [int(rng.integers(room.asset_pool))] * n
+        else:
+            ids = [int(i) for i in rng.choice(room.asset_pool, size=n, replace=False)]
+        placed: list[tuple[float, float, float]] = []
+        objects: list[ObjectSpec] = []
+        for i, asset in enumerate(ids):
+            probe = ObjectSpec(i + 1, "chair", "", (0, 0, 0), "rubber", room.chair_scale, "",
+                               (0.0, 0.0, 0.0), 0.0, asset)  # fmt: skip
+            r = probe.bounding_radius_xy
+            for _try in range(preset.max_placement_tries):
+                x, y = (float(v) for v in rng.uniform(-lim, lim, size=2))
+                if all(np.hypot(x - px, y - py) - r - pr >= preset.min_gap for px, py, pr in placed):
+                    break
+            else:
+                break
+            yaw = float(rng.uniform(0.0, 360.0))
+            color = colors[int(rng.integers(len(colors)))]
+            placed.append((x, y, r))
+            objects.append(replace(probe, color=color, rgb=CLEVR_COLORS[color],
+                                   position=(x, y, 0.0), rotation=yaw))  # fmt: skip
+        if len(objects) == n:
+            break
+    else:
+        raise RuntimeError(f"preset {preset.name!r}: could not place {room.n_chairs} chairs")
+    bg = int(rng.integers(room.n_backgrounds))
+    floor_id, wall_id = background_params(bg)
+    g = preset.ground
+    ground = GroundSpec(
+        size=2 * room.room_half_size, color_linear=g.color_linear, roughness=g.roughness,
+        type="room", background_id=bg, floor_texture_id=int(floor_id),
+        wall_texture_id=int(wall_id), wall_half_size=room.room_half_size,
+        wall_height=room.wall_height, texture_tile=room.texture_tile,
+        texture_size=room.texture_size,
+    )  # fmt: skip
+    return objects, ground
+
+
 def _lights(preset: Preset, rng: np.random.Generator) -> tuple[LightSpec, ...]:
     rig = preset.lights
     out = []
@@ -185,11 +238,14 @@ def sample_scene(
         A SceneSpec with ``index``/``seed``/``scene_seed``/``attempt`` set to 0
         (:func:`make_scene` fills them in).
     """
-    rules = preset.rules(split)
-    objects = _layout(preset, rules, rng)
+    g = preset.ground
+    if preset.room is not None:
+        objects, ground = _room_layout(preset, rng)
+    else:
+        objects = _layout(preset, preset.rules(split), rng)
+        ground = GroundSpec(size=g.size, color_linear=g.color_linear, roughness=g.roughness)
     lights = _lights(preset, rng)
     views = _views(preset, rng)
-    g = preset.ground
     return SceneSpec(
         preset=preset.name,
         split=split,
@@ -199,7 +255,7 @@ def sample_scene(
         attempt=0,
         objects=tuple(objects),
         lights=lights,
-        ground=GroundSpec(size=g.size, color_linear=g.color_linear, roughness=g.roughness),
+        ground=ground,
         world=WorldSpec(color_linear=preset.lights.world_color, strength=preset.lights.world_strength),
         views=views,
     )

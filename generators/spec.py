@@ -11,6 +11,7 @@ light energy, linear Rec.709 for ``*_linear`` colours, 8-bit sRGB for ``rgb``.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -26,6 +27,16 @@ Mat4 = tuple[tuple[float, float, float, float], ...]
 
 def _vec(x) -> Vec3:
     return tuple(float(v) for v in x)  # type: ignore[return-value]
+
+
+@functools.lru_cache(maxsize=64)
+def chair_local_mesh(asset_id: int) -> geometry.TriMesh:
+    """Canonical procedural chair ``asset_id`` (max horizontal extent 1, base z=0, flat)."""
+    from assets_procedural import load_cached_chair
+
+    m = load_cached_chair(int(asset_id))
+    f = np.asarray(m.faces, dtype=np.int64)
+    return geometry.TriMesh(np.asarray(m.vertices, dtype=np.float64), f, np.zeros(len(f), bool))
 
 
 def _mat(x) -> Mat4:
@@ -51,7 +62,7 @@ class RenderSettings:
     """
 
     resolution: int = 128
-    samples: int = 16
+    samples: int = 8
     denoise: bool = True
     denoise_prefilter: str = "FAST"
     denoise_quality: str = "BALANCED"
@@ -161,6 +172,9 @@ class ObjectSpec:
     @property
     def bounding_radius_xy(self) -> float:
         """Radius of the object's bounding circle in the ground plane (CLEVR: r for all shapes)."""
+        if self.shape == "chair":
+            v = chair_local_mesh(int(self.asset_id or 0)).vertices
+            return float(self.size * np.hypot(v[:, 0], v[:, 1]).max())
         return self.size
 
     def dimensions(self) -> dict[str, float]:
@@ -183,6 +197,9 @@ class ObjectSpec:
             return geometry.cylinder_mesh(d["radius"], d["height"])
         if self.shape == "cube":
             return geometry.cube_mesh(d["edge"])
+        if self.shape == "chair":
+            m = chair_local_mesh(int(self.asset_id or 0))
+            return geometry.TriMesh(m.vertices * self.size, m.faces, m.smooth)
         raise ValueError(f"shape: no built-in mesh for {self.shape!r}")
 
     def world_mesh(self) -> geometry.TriMesh:
@@ -262,19 +279,53 @@ class LightSpec:
 
 @dataclass(frozen=True)
 class GroundSpec:
-    """The ground: a square plane at z=``z`` (background, instance id 0, finite depth)."""
+    """The ground: a square plane at z=``z`` (background, instance id 0, finite depth).
+
+    Room presets (``type="room"``) add textures and four walls facing inwards at
+    ``x, y = +-wall_half_size``, ``wall_height`` high; floor and walls are background.
+    """
 
     size: float
     color_linear: Vec3
     roughness: float
     z: float = 0.0
     type: str = "plane"
+    background_id: int | None = None
+    floor_texture_id: int | None = None
+    wall_texture_id: int | None = None
+    wall_half_size: float | None = None
+    wall_height: float | None = None
+    texture_tile: float | None = None
+    texture_size: int | None = None
 
-    def mesh(self) -> geometry.TriMesh:
+    def floor_mesh(self) -> geometry.TriMesh:
         return geometry.plane_mesh(self.size, self.z)
 
+    def wall_mesh(self) -> geometry.TriMesh | None:
+        """The four walls (normals pointing into the room), or None."""
+        if self.wall_half_size is None or self.wall_height is None:
+            return None
+        h, t, z = self.wall_half_size, self.wall_height, self.z
+        quads = [
+            [(-h, h, z), (h, h, z), (h, h, z + t), (-h, h, z + t)],  # +y wall, normal -y
+            [(h, -h, z), (-h, -h, z), (-h, -h, z + t), (h, -h, z + t)],  # -y wall, normal +y
+            [(h, h, z), (h, -h, z), (h, -h, z + t), (h, h, z + t)],  # +x wall, normal -x
+            [(-h, -h, z), (-h, h, z), (-h, h, z + t), (-h, -h, z + t)],  # -x wall, normal +x
+        ]
+        v = np.array([p for q in quads for p in q], dtype=np.float64)
+        f = np.array([[4 * i, 4 * i + 1, 4 * i + 2] for i in range(4)]
+                     + [[4 * i, 4 * i + 2, 4 * i + 3] for i in range(4)], dtype=np.int64)  # fmt: skip
+        return geometry.TriMesh(v, f, np.zeros(len(f), bool))
+
+    def mesh(self) -> geometry.TriMesh:
+        """Floor (+ walls): everything that is background."""
+        walls = self.wall_mesh()
+        if walls is None:
+            return self.floor_mesh()
+        return geometry.concat_meshes([self.floor_mesh(), walls])[0]
+
     def to_json(self) -> dict[str, Any]:
-        return {
+        d = {
             "type": self.type,
             "size": self.size,
             "z": self.z,
@@ -282,6 +333,11 @@ class GroundSpec:
             "roughness": self.roughness,
             "instance_id": 0,
         }
+        for k in ("background_id", "floor_texture_id", "wall_texture_id", "wall_half_size",
+                  "wall_height", "texture_tile", "texture_size"):  # fmt: skip
+            if getattr(self, k) is not None:
+                d[k] = getattr(self, k)
+        return d
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> GroundSpec:
@@ -291,6 +347,13 @@ class GroundSpec:
             roughness=float(d["roughness"]),
             z=float(d["z"]),
             type=d["type"],
+            background_id=d.get("background_id"),
+            floor_texture_id=d.get("floor_texture_id"),
+            wall_texture_id=d.get("wall_texture_id"),
+            wall_half_size=d.get("wall_half_size"),
+            wall_height=d.get("wall_height"),
+            texture_tile=d.get("texture_tile"),
+            texture_size=d.get("texture_size"),
         )
 
 

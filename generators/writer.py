@@ -1,124 +1,98 @@
-"""Writer: rendered passes of one scene -> the files of the dataset contract.
+"""Writes a split's files through ``scenefmt`` (atomic, scene JSON last) + the manifest.
 
-Data flow: ``pipeline`` -> ``blender_backend`` passes -> :func:`write_scene` ->
-``scenefmt`` atomic writers. Per-view files go first, in ``SplitLayout.view_files``
-order, the scene JSON last (it marks the scene complete, see
-``scenefmt.is_scene_complete``). Also writes ``manifest.json``.
+Data flow: ``blender_backend.ViewPasses`` -> ``imageops`` -> :class:`ViewImages` ->
+:func:`write_scene` -> the split folder; derived presets (``clevr567-gray``) go
+through :func:`convert_scene_grayscale` from an existing colour split instead.
+Every file is written to a temp file beside its target and renamed into place
+(``scenefmt`` writers); the scene JSON goes last, so ``scenefmt.is_scene_complete``
+is true only once every file of the scene is in place. A kill at any moment leaves
+either a complete scene or an incomplete one that the next run renders again.
+
+:func:`manifest` builds ``manifest.json``; it holds no clock or host fields, so two
+runs of the same command write identical bytes.
 """
 
 from __future__ import annotations
 
-import importlib.metadata
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+import scenefmt
 from generators import geometry
+from generators.imageops import GRAYSCALE_FORMULA, grayscale_rec601
 from generators.presets import Preset
 from generators.spec import RenderSettings, SceneSpec
-from scenefmt import (
-    FORMAT_VERSION,
-    MASK_BG_LEVEL,
-    MASK_SENTINEL_LEVEL,
-    SplitLayout,
-    atomic_write_json,
-    uorf_mask_from_instances,
-    write_depth_exr,
-    write_instances,
-    write_mask,
-    write_matrix_txt,
-    write_rgb,
-)
-from scenefmt.layout import MASK_STEP
 
-
-def generator_version() -> str:
-    """Version of the installed toolkit (``pyproject`` version)."""
-    try:
-        return importlib.metadata.version("svorf-toolkit")
-    except importlib.metadata.PackageNotFoundError:  # pragma: no cover - not installed
-        return "0.0.0+unknown"
+GENERATOR_VERSION = "0.1.0"
 
 
 @dataclass(frozen=True)
 class ViewImages:
-    """Final per-view arrays, as they go to disk.
+    """Final per-view arrays as they go to disk.
 
     Attributes:
-        rgb8: uint8 [H, W, 3] sRGB.
-        ids: uint8 [H, W] instance ids, 0 = background.
-        depth_z: float32 [H, W] planar depth (camera z, world units), inf = no hit.
+        rgb: uint8 [H, W, 3] sRGB.
+        ids: uint8 [H, W] instance ids, 0 = background; pixel (0, 0) must be 0.
+        depth_z: float32 [H, W] planar depth, world units (inf = no hit).
     """
 
-    rgb8: np.ndarray
+    rgb: np.ndarray
     ids: np.ndarray
     depth_z: np.ndarray
 
 
-def write_scene(layout: SplitLayout, spec: SceneSpec, views: list[ViewImages]) -> None:
-    """Write every file of scene ``spec.index``; the scene JSON last.
-
-    Raises:
-        ValueError: wrong number of views, or a view whose pixel (0, 0) is not
-            background (the uORF mask sentinel needs it).
-    """
-    if len(views) != spec.n_views or spec.n_views != layout.n_views:
-        raise ValueError(
-            f"views: expected {layout.n_views} views for scene {spec.index}, got {len(views)}"
-        )
-    s = spec.index
-    names = []
-    for v, (img, view) in enumerate(zip(views, spec.views, strict=True)):
-        if img.ids[0, 0] != 0:
-            raise ValueError(
-                f"scene {s} view {v}: pixel (0, 0) shows instance {img.ids[0, 0]}, "
-                "but the uORF mask sentinel needs background there"
-            )
-        write_rgb(layout.rgb(s, v), img.rgb8)
-        write_matrix_txt(layout.rt(s, v), view.c2w())
-        write_matrix_txt(layout.azi_rot(s, v), geometry.azimuth_rotation(view.azimuth_deg))
-        write_mask(layout.mask(s, v), uorf_mask_from_instances(img.ids))
-        write_instances(layout.instances(s, v), img.ids)
-        write_depth_exr(layout.depth(s, v), img.depth_z)
-        names.append(layout.rgb(s, v).name)
-    atomic_write_json(layout.scene_json(s), spec.to_json(names))
-
-
 def manifest(
-    preset: Preset, split: str, n_scenes: int, resolution: int, seed: int, render: RenderSettings
+    preset: Preset,
+    split: str,
+    n: int,
+    resolution: int,
+    seed: int,
+    render: RenderSettings,
+    status: str | None = None,
 ) -> dict[str, Any]:
-    """The split-level ``manifest.json`` (deterministic: no clock, no host names)."""
-    return {
+    """The ``manifest.json`` of a split (documented in ``docs/format.md``).
+
+    Args:
+        preset: the dataset's preset (``preset_config`` is saved verbatim).
+        split: split name.
+        n: number of scenes of the split.
+        resolution: square image size.
+        seed: dataset seed.
+        render: render settings of every scene.
+        status: optional ``"in_progress"`` / ``"complete"`` (deterministic, no clock).
+    """
+    d: dict[str, Any] = {
         "format": "svorf-dataset",
-        "format_version": FORMAT_VERSION,
+        "format_version": scenefmt.FORMAT_VERSION,
+        "generator": f"generators {GENERATOR_VERSION}",
+        "generator_version": GENERATOR_VERSION,
         "preset": preset.name,
         "description": preset.description,
         "split": split,
-        "n_scenes": int(n_scenes),
+        "n_scenes": int(n),
         "n_views": preset.camera.n_views,
         "resolution": int(resolution),
         "seed": int(seed),
         "scene_seed_rule": "seed * 1_000_000 + split_code * 100_000 + index (train 0, test 1)",
-        "generator": f"generators {generator_version()}",
-        "generator_version": generator_version(),
         "num_slots": preset.num_slots,
         "grayscale": preset.grayscale,
         "render": render.to_json(),
         "conventions": {
-            "world": "right-handed, +z up, origin = scene centre, world units",
             "camera_convention": "opencv",
             "cam_to_world": "4x4, columns = camera x (right), y (down), z (forward), centre",
             "intrinsics": "K = [[f,0,W/2],[0,f,H/2],[0,0,1]], f = lens_mm/sensor_width_mm*W, "
             "pixel (u,v) centre at (u+0.5, v+0.5)",
+            "world": "right-handed, +z up, origin = scene centre, world units",
             "depth": "planar_z",
             "depth_units": "world units; inf where the ray hits nothing",
             "instance_ids": "uint8, 0 = background (ground), k = objects[k-1] of sc%04d.json",
             "mask": {
                 "sentinel_pixel": [0, 0],
-                "sentinel_level": MASK_SENTINEL_LEVEL,
-                "background_level": MASK_BG_LEVEL,
-                "object_level": f"{MASK_BG_LEVEL} + {MASK_STEP} * instance_id",
+                "sentinel_level": scenefmt.MASK_SENTINEL_LEVEL,
+                "background_level": scenefmt.MASK_BG_LEVEL,
+                "object_level": f"{scenefmt.MASK_BG_LEVEL} + 18 * instance_id",
             },
             "rgb": "8-bit sRGB (sRGB OETF of linear Cycles output)",
             "azi_rot": "3x3 rotation about world z by the view azimuth",
@@ -134,3 +108,82 @@ def manifest(
         },
         "preset_config": preset.to_json(),
     }
+    if status is not None:
+        d["status"] = status
+    return d
+
+
+def grayscale_json(scene_json: dict[str, Any], preset_name: str, rgb_source: str) -> dict[str, Any]:
+    """Scene JSON of the grayscale variant: the colour scene's JSON with ``preset``
+    renamed and ``grayscale`` (the formula) and ``rgb_source`` added."""
+    if rgb_source not in ("converted", "rendered"):
+        raise ValueError(f"rgb_source must be 'converted' or 'rendered', got {rgb_source!r}")
+    out = dict(scene_json)
+    out["preset"] = preset_name
+    out["grayscale"] = GRAYSCALE_FORMULA
+    out["rgb_source"] = rgb_source
+    return out
+
+
+def write_scene(
+    layout: scenefmt.SplitLayout,
+    spec: SceneSpec,
+    views: list[ViewImages],
+    *,
+    grayscale_preset: str | None = None,
+) -> dict[str, Any]:
+    """Write every file of scene ``spec.index``; the scene JSON last.
+
+    Args:
+        layout: the split folder.
+        spec: the scene (its JSON is written).
+        views: one :class:`ViewImages` per view, in view order.
+        grayscale_preset: if set, RGB is converted with Rec.601 luma and the JSON
+            becomes :func:`grayscale_json` with this preset name (``rgb_source``
+            ``"rendered"``).
+
+    Returns:
+        The scene JSON written.
+    """
+    if len(views) != spec.n_views or spec.n_views != layout.n_views:
+        raise ValueError(
+            f"views: expected {layout.n_views} views, got {len(views)} (spec has {spec.n_views})"
+        )
+    scene = spec.index
+    for v, (img, vs) in enumerate(zip(views, spec.views, strict=True)):
+        rgb = grayscale_rec601(img.rgb) if grayscale_preset else img.rgb
+        scenefmt.write_rgb(layout.rgb(scene, v), rgb)
+        scenefmt.write_matrix_txt(layout.rt(scene, v), vs.c2w())
+        scenefmt.write_matrix_txt(
+            layout.azi_rot(scene, v), geometry.azimuth_rotation(vs.azimuth_deg)
+        )
+        scenefmt.write_mask(layout.mask(scene, v), scenefmt.uorf_mask_from_instances(img.ids))
+        scenefmt.write_instances(layout.instances(scene, v), img.ids)
+        scenefmt.write_depth_exr(layout.depth(scene, v), img.depth_z)
+    d = spec.to_json([layout.rgb(scene, v).name for v in range(spec.n_views)])
+    if grayscale_preset:
+        d = grayscale_json(d, grayscale_preset, "rendered")
+    scenefmt.atomic_write_json(layout.scene_json(scene), d)
+    return d
+
+
+def convert_scene_grayscale(
+    src: scenefmt.SplitLayout, dst: scenefmt.SplitLayout, scene: int, preset_name: str
+) -> dict[str, Any]:
+    """Make scene ``scene`` of ``dst`` from the complete colour scene of ``src``.
+
+    Every file except the RGB images is copied byte for byte (the depth EXR
+    included); the RGB images are converted with Rec.601 luma; the JSON becomes
+    :func:`grayscale_json` (``rgb_source: "converted"``), written last.
+    """
+    if not scenefmt.is_scene_complete(src, scene):
+        raise ValueError(f"scene: source scene {scene} in {src.root} is not complete")
+    for v in range(src.n_views):
+        gray = grayscale_rec601(scenefmt.read_rgb(src.rgb(scene, v)))
+        scenefmt.write_rgb(dst.rgb(scene, v), gray)
+        for name in ("rt", "azi_rot", "mask", "instances", "depth"):
+            data = getattr(src, name)(scene, v).read_bytes()
+            scenefmt.atomic_write_bytes(getattr(dst, name)(scene, v), data)
+    d = grayscale_json(scenefmt.read_json(src.scene_json(scene)), preset_name, "converted")
+    scenefmt.atomic_write_json(dst.scene_json(scene), d)
+    return d

@@ -117,6 +117,10 @@ def write_depth_exr(path: str | os.PathLike, depth_z: np.ndarray) -> None:
     spec = oiio.ImageSpec(w, h, 1, "float")
     spec.channelnames = ("Z",)
     spec.attribute("compression", "zip")
+    # A fixed header so identical depth maps give identical bytes (OIIO stamps the
+    # wall-clock time otherwise): determinism is checked byte for byte.
+    spec.attribute("DateTime", "1970:01:01 00:00:00")
+    spec.attribute("Software", "scenefmt")
     out = oiio.ImageOutput.create(str(tmp))
     if out is None:
         raise OSError(f"OpenImageIO cannot create {tmp}: {oiio.geterror()}")

@@ -24,11 +24,18 @@ from pathlib import Path
 __all__ = ["main"]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line usage errors (``svorf: error: ...``, exit status 2)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"svorf: error: {self.prog}: {message} (see `{self.prog} --help`)\n")
+
+
 def _parser() -> argparse.ArgumentParser:
     from svorf.train import PRESETS, SCALES
 
-    p = argparse.ArgumentParser(prog="svorf", description="Train and inspect sVORF models.")
-    sub = p.add_subparsers(dest="command", required=True)
+    p = _Parser(prog="svorf", description="Train and inspect sVORF models.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     t = sub.add_parser("train", help="train a model on a generated split")
     t.add_argument("--data", required=True, help="training split folder (e.g. data/clevr567/train)")

@@ -62,6 +62,7 @@ class SlotGuidedComposer(nn.Module):
     def __init__(self, cfg: ModelConfig, in_x: int) -> None:
         super().__init__()
         dim, self.heads = cfg.comp_dim, cfg.comp_heads
+        self.temperature = float(getattr(cfg, "comp_temperature", 1.0))
         D = cfg.slot_dim
         self.q = nn.Linear(in_x, dim)
         self.k = nn.Linear(D, dim)
@@ -163,7 +164,10 @@ class SlotGuidedComposer(nn.Module):
 
         Returned as a transposed view of a contiguous [B, K, P] tensor (use ``reshape``)."""
         vt = None if valid is None else valid.transpose(1, 2)  # [B, K, P|1]
-        return masked_softmax(self.logits_kp(gx, slots, valid), vt, dim=1).transpose(1, 2)
+        logits = self.logits_kp(gx, slots, valid)
+        if self.temperature != 1.0:  # ModelConfig.comp_temperature (cpu recipe)
+            logits = logits / self.temperature
+        return masked_softmax(logits, vt, dim=1).transpose(1, 2)
 
 
 def compose(sigma_k: Tensor, rgb_k: Tensor, m: Tensor) -> tuple[Tensor, Tensor]:

@@ -161,6 +161,22 @@ class ModelConfig:
     saving grows as m sharpens during training (at initialisation m is nearly uniform and
     nearly every slot is kept). slot_guided only, ignored otherwise. 1.0 = off (paper)."""
 
+    # ---- cpu-scale training recipe (docs/cpu_recipe.md; all off at paper scale) ----
+    fg_zmin: float | None = None
+    """If set, foreground (object) slots have density 0 and composition weight 0 below the
+    height z = fg_zmin (world units, z up; datasets put the floor at z = 0), so the floor
+    belongs to the background slot: a label-free scene-layout prior in the spirit of uORF's
+    locality box (combines with ``fg_box``). None = no such prior (paper)."""
+    bg_outside_fg: bool = False
+    """Background-slot prior: the background slot (the last) has density 0 and composition
+    weight 0 inside the foreground region (inside ``fg_box`` and above ``fg_zmin``; one of
+    them must be set), so it can only explain the floor and what lies outside, and the
+    objects must be explained by foreground slots (with ``fg_zmin`` the two regions
+    partition the scene). False = the background slot is a field like the others (paper)."""
+    comp_temperature: float = 1.0
+    """Temperature T of the slot-guided composition: m = softmax_k(logits / T). T < 1
+    sharpens the soft masks (more decomposition pressure from the first steps). 1.0 = paper."""
+
     def __post_init__(self) -> None:
         object.__setattr__(self, "enc_blocks", tuple(int(b) for b in self.enc_blocks))
         _check_choice("composition", self.composition, Composition)
@@ -218,6 +234,12 @@ class ModelConfig:
             )
         if self.box_half <= 0 or (self.fg_box is not None and self.fg_box <= 0):
             raise ValueError("ModelConfig.box_half and fg_box must be > 0")
+        if self.bg_outside_fg and self.fg_box is None and self.fg_zmin is None:
+            raise ValueError("ModelConfig.bg_outside_fg needs fg_box or fg_zmin (the region)")
+        if not (self.comp_temperature > 0):
+            raise ValueError(
+                f"ModelConfig.comp_temperature must be > 0, got {self.comp_temperature}"
+            )
         if self.last_delta <= 0 or self.sigma_max <= 0:
             raise ValueError("ModelConfig.last_delta and sigma_max must be > 0")
         if self.slot_mask_train != 0 and not 0 < self.slot_mask_train <= self.num_slots - 2:

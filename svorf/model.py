@@ -313,9 +313,17 @@ class SVORF(nn.Module):
         gd = gd[:, :, :, None].expand(B, Kx, R, N, gd.shape[-1]).reshape(B, Kx, P, -1)
 
         valid = None if slot_mask is None else slot_mask[:, None, :]  # [B, 1, K]
-        if cfg.fg_box is not None:
-            inside = (xk.abs() <= cfg.fg_box).all(dim=-1)  # [B, Kx, P]
-            fg_ok = (inside.expand(B, K, P) | is_bg[:, :, None]).transpose(1, 2)  # [B, P, K]
+        if cfg.fg_box is not None or cfg.fg_zmin is not None:
+            inside = torch.ones(xk.shape[:-1], dtype=torch.bool, device=xk.device)
+            if cfg.fg_box is not None:
+                inside = (xk.abs() <= cfg.fg_box).all(dim=-1)  # [B, Kx, P]
+            if cfg.fg_zmin is not None:  # the floor belongs to the background slot
+                inside = inside & (xk[..., 2] >= cfg.fg_zmin)
+            if cfg.bg_outside_fg:  # the background slot only outside the foreground region
+                inside = inside.expand(B, K, P)
+                fg_ok = torch.where(is_bg[:, :, None], ~inside, inside).transpose(1, 2)
+            else:
+                fg_ok = (inside.expand(B, K, P) | is_bg[:, :, None]).transpose(1, 2)  # [B, P, K]
             valid = fg_ok if valid is None else valid & fg_ok
 
         with self._autocast(slots.device):

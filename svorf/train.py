@@ -103,6 +103,11 @@ class TrainConfig:
     """Seeds parameter init, data sampling and the model's own randomness."""
     ray_sampling: str = "uniform"
     """Ray-sampling strategy, a name in ``svorf.data.RAY_SAMPLING``; "uniform" = paper."""
+    nvs_warmup: int = 0
+    """Input-view reconstruction warm-up (cpu recipe, docs/cpu_recipe.md): for the first
+    this many steps the target rays come from the input view itself, afterwards from the
+    other views (novel-view supervision, when ``ModelConfig.nvs``). 0 = paper (novel views
+    from step 0)."""
     log_every: int = 10
     """Append a line to log.jsonl every this many steps (and at the last step)."""
     ckpt_every: int = 500
@@ -120,8 +125,8 @@ class TrainConfig:
                      "eval_scenes"):  # fmt: skip
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
-        if self.warmup < 0 or self.eval_every < 0:
-            raise ValueError("TrainConfig.warmup and eval_every must be >= 0")
+        if self.warmup < 0 or self.eval_every < 0 or self.nvs_warmup < 0:
+            raise ValueError("TrainConfig.warmup, eval_every and nvs_warmup must be >= 0")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
@@ -488,6 +493,7 @@ def train(
     *,
     max_scenes: int | None = None,
     progress: bool = True,
+    max_wall_s: float | None = None,
 ) -> dict[str, Any]:
     """Train sVORF on a split folder and write a run folder.
 
@@ -506,6 +512,9 @@ def train(
             the step and the training wall time.
         max_scenes: load only the first scenes of ``data_dir`` (quick runs).
         progress: show a tqdm bar (loss, steps/s) on stderr.
+        max_wall_s: stop (with a checkpoint) once the run's training wall time, summed
+            over resumed calls, reaches this many seconds, even before ``train_cfg.steps``
+            (time-budgeted runs; ``resume=True`` continues them).
 
     Returns:
         Run summary: ``steps``, ``start_step``, ``final_loss``, ``wall_s`` (this call),
@@ -533,6 +542,10 @@ def train(
                                    max_scenes=train_cfg.eval_scenes)  # fmt: skip
     sampler = RaySampler(dataset, train_cfg.rays_per_scene, nvs=model_cfg.nvs,
                          ray_sampling=train_cfg.ray_sampling)  # fmt: skip
+    sampler_warm = sampler
+    if train_cfg.nvs_warmup and model_cfg.nvs:
+        sampler_warm = RaySampler(dataset, train_cfg.rays_per_scene, nvs=False,
+                                  ray_sampling=train_cfg.ray_sampling)  # fmt: skip
     data_info = {
         "fingerprint": dataset.fingerprint,
         "root": str(Path(data_dir).resolve()),
@@ -641,9 +654,8 @@ def train(
             lr = lr_at(train_cfg, step)
             for group in opt.param_groups:
                 group["lr"] = lr
-            batch = sampler.sample(sampler.sample_scenes(train_cfg.batch_scenes, gen), gen).to(
-                device
-            )
+            smp = sampler_warm if step < train_cfg.nvs_warmup else sampler
+            batch = smp.sample(smp.sample_scenes(train_cfg.batch_scenes, gen), gen).to(device)
             # In train mode the model draws the packed-11 slot mask itself (global RNG).
             out_r = model(batch.images, batch.rays_o, batch.rays_d, perturb=True)
             loss, parts = model.loss(out_r, batch.target_rgb)
@@ -668,7 +680,8 @@ def train(
                 bar.set_postfix(loss=f"{last_loss:.5f}")
             now = time.perf_counter()
             wall = wall_offset + now - t0 - paused
-            if done % train_cfg.log_every == 0 or done == train_cfg.steps:
+            out_of_time = max_wall_s is not None and wall >= max_wall_s
+            if done % train_cfg.log_every == 0 or done == train_cfg.steps or out_of_time:
                 sps = (done - last_log_step) / max(now - last_log_t, 1e-9)
                 _append_jsonl(log_path, {
                     "step": done, "wall_s": round(wall, 3), "lr": lr, "loss": last_loss,
@@ -679,17 +692,20 @@ def train(
             tp = time.perf_counter()
             if eval_ds is not None and done % train_cfg.eval_every == 0:
                 run_eval(done, wall)
-            if done % train_cfg.ckpt_every == 0 or done == train_cfg.steps:
+            if done % train_cfg.ckpt_every == 0 or done == train_cfg.steps or out_of_time:
                 save(done, wall)
                 saved = done
             paused += time.perf_counter() - tp
+            if out_of_time:
+                break
     finally:
         if bar is not None:
             bar.close()
     elapsed = time.perf_counter() - t0
-    steps_run = max(train_cfg.steps - start, 0)
+    end = saved if saved is not None else start
+    steps_run = max(end - start, 0)
     summary = {
-        "steps": train_cfg.steps,
+        "steps": end,
         "start_step": start,
         "final_loss": last_loss,
         "wall_s": round(elapsed, 3),

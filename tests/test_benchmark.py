@@ -564,5 +564,7 @@ def test_smoke_protocol_with_generator_presets(tmp_path, protocol):
             assert "paper" in sources
             if prow["variant"] is not None:
                 assert "measured" in sources, (t, prow["model"])
-    assert all(d["source"] == "generator" for d in report["datasets"])
+    assert report["status"] == "complete"
+    assert all(r["n_scenes"] >= 1 for r in report["rows"] if r["source"] != "paper")
+    assert report["datasets"] and all(d["source"] == "generator" for d in report["datasets"])
     assert (folder / "index.html").is_file() and report["figures"]

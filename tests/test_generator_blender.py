@@ -175,3 +175,19 @@ def test_process_pool_and_shards_match_in_process_run(runs, tmp_path):
         for sc in range(2):
             assert a.scene_json(sc).read_bytes() == b.scene_json(sc).read_bytes()
             assert a.rgb(sc, 2).read_bytes() == b.rgb(sc, 2).read_bytes()
+
+
+def test_room_chair_renders_and_verifies(tmp_path):
+    from generators.raycast import cast_view
+    from generators.spec import SceneSpec
+    from generators.verify import verify_split
+    from scenefmt import SplitLayout, read_instances, read_json
+
+    out = tmp_path / "room"
+    _gen(out, n=1, preset="room-chair")
+    assert verify_split(out) == []
+    layout = SplitLayout(out)
+    spec = SceneSpec.from_json(read_json(layout.scene_json(0)))
+    assert spec.ground.type == "room" and spec.objects[0].shape == "chair"
+    ids = read_instances(layout.instances(0, 0))
+    assert (ids == cast_view(spec, 0, RES).ids).mean() > 0.98

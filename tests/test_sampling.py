@@ -143,3 +143,27 @@ def test_all_presets_registered():
     assert {"clevr567", "clevr567-heldout", "packed-clevr11", "clevr567-gray"} <= set(PRESETS)
     with pytest.raises(ValueError, match="known presets"):
         get_preset("nope")
+
+
+@pytest.mark.parametrize("name", ["room-chair", "room-diverse"])
+def test_room_presets(name):
+    p = get_preset(name)
+    s = make_scene(p, "train", 1, 0)
+    assert p.room.n_chairs[0] <= len(s.objects) <= p.room.n_chairs[1]
+    assets = [o.asset_id for o in s.objects]
+    if p.room.same_shape:
+        assert len(set(assets)) == 1
+    else:
+        assert len(set(assets)) == len(assets)
+    assert all(o.shape == "chair" and o.position[2] == 0.0 for o in s.objects)
+    assert 0 <= s.ground.background_id < p.room.n_backgrounds
+    assert s.ground.wall_mesh() is not None
+    for a, b in itertools.combinations(s.objects, 2):
+        d = math.hypot(a.position[0] - b.position[0], a.position[1] - b.position[1])
+        assert d - a.bounding_radius_xy - b.bounding_radius_xy >= p.min_gap - 1e-12
+    d = json.loads(json.dumps(s.to_json(["a", "b", "c", "d"])))
+    assert SceneSpec.from_json(d) == s
+    for v in range(4):
+        ids = cast_view(s, v, 16).ids
+        assert ids[0, 0] == 0
+        assert np.isfinite(cast_view(s, v, 16).depth_z).all()  # walls close the room

@@ -1,0 +1,301 @@
+"""CPU-scale training recipe for sVORF (issue 6): time-budgeted training with held-out
+segmentation metrics over wall-clock time, and the recipe's levers as config fields.
+
+Where it sits: on top of ``svorf.train.train`` (which it calls with ``max_wall_s`` and an
+``eval_fn``). Nothing here imports ``benchmark``: the segmentation metrics are a callable
+(:func:`make_eval_fn`), by default the small ARI of this module; the command line
+(``python -m svorf.recipe train-eval``) plugs in ``benchmark.metrics.segmentation_metrics``
+when it can be imported, lazily, as a tool.
+
+The levers (every one a documented config field that the paper scale leaves off):
+
+==================  ===========================================  =========================
+lever               field                                        paper value
+==================  ===========================================  =========================
+object-heavy rays   ``TrainConfig.ray_sampling="object_heavy"``  "uniform"
+input-view warm-up  ``TrainConfig.nvs_warmup``                   0
+learning rate       ``TrainConfig.lr`` / ``warmup``              1e-4 / 1000
+batch shape         ``TrainConfig.batch_scenes`` / ``rays_...``  16 / 64
+floor -> background ``ModelConfig.fg_zmin``                      None
+locality box        ``ModelConfig.fg_box``                       None
+bg outside objects  ``ModelConfig.bg_outside_fg``                False
+comp. temperature   ``ModelConfig.comp_temperature``             1.0
+==================  ===========================================  =========================
+
+Measurements and the recommended command are in docs/cpu_recipe.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from svorf.config import ModelConfig
+from svorf.data import MultiViewDataset
+from svorf.model import SVORF
+from svorf.train import TrainConfig, load_run, predict_scene, run_configs, train
+
+__all__ = [
+    "RECIPE_LEVERS",
+    "SegMetricsFn",
+    "adjusted_rand_index",
+    "make_eval_fn",
+    "recipe_configs",
+    "save_segmentation_grid",
+    "segmentation_metrics_basic",
+    "train_eval",
+]
+
+#: ``fn(pred [B, V, H, W], gt [B, V, H, W], input_view) -> {name: [B] tensor}`` with at
+#: least ``ari``, ``fg_ari``, ``nv_ari`` (the signature of
+#: ``benchmark.metrics.segmentation_metrics``).
+SegMetricsFn = Callable[[Tensor, Tensor, int], dict[str, Tensor]]
+
+#: The recipe's choices on top of ``run_configs("cpu", "clevr567")`` (docs/cpu_recipe.md):
+#: model fields and train fields. ``recipe_configs(levers=...)`` overrides them.
+RECIPE_LEVERS: dict[str, Any] = {
+    "ray_sampling": "object_heavy",
+    "nvs_warmup": 300,
+    "fg_zmin": 0.05,
+    "fg_box": None,
+    "bg_outside_fg": True,
+    "comp_temperature": 1.0,
+}
+
+_MODEL_LEVERS = ("fg_zmin", "fg_box", "bg_outside_fg", "comp_temperature")
+
+
+def recipe_configs(
+    preset: str = "clevr567", levers: dict[str, Any] | None = None, **train_overrides: Any
+) -> tuple[ModelConfig, TrainConfig]:
+    """(model, train) configs of the cpu recipe: cpu scale + :data:`RECIPE_LEVERS`.
+
+    ``levers`` replaces entries of :data:`RECIPE_LEVERS` (model levers: fg_zmin, fg_box,
+    comp_temperature; everything else is a TrainConfig field); ``train_overrides`` are
+    further TrainConfig fields (steps, lr, batch_scenes, ...).
+    """
+    lv = {**RECIPE_LEVERS, **(levers or {})}
+    model_kw = {k: lv.pop(k) for k in _MODEL_LEVERS if k in lv}
+    mcfg, tcfg = run_configs("cpu", preset)
+    return mcfg.replace(**model_kw), tcfg.replace(**lv, **train_overrides)
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def adjusted_rand_index(pred: Tensor, gt: Tensor, mask: Tensor | None = None) -> float:
+    """ARI of two integer labelings of the same pixels (optionally only where ``mask``).
+
+    NaN when fewer than 2 pixels are scored; 1.0 when both labelings are a single cluster.
+    """
+    p, g = pred.reshape(-1).long(), gt.reshape(-1).long()
+    if mask is not None:
+        keep = mask.reshape(-1).bool()
+        p, g = p[keep], g[keep]
+    n = p.numel()
+    if n < 2:
+        return math.nan
+    _, p = torch.unique(p, return_inverse=True)
+    _, g = torch.unique(g, return_inverse=True)
+    np_, ng = int(p.max()) + 1, int(g.max()) + 1
+    cont = torch.bincount(p * ng + g, minlength=np_ * ng).view(np_, ng).double()
+
+    def c2(x: Tensor) -> Tensor:
+        return (x * (x - 1) / 2).sum()
+
+    idx, a, b = c2(cont), c2(cont.sum(1)), c2(cont.sum(0))
+    total = n * (n - 1) / 2
+    expected = a * b / total
+    max_idx = (a + b) / 2
+    if float(max_idx - expected) == 0.0:
+        return 1.0
+    return float((idx - expected) / (max_idx - expected))
+
+
+def segmentation_metrics_basic(pred: Tensor, gt: Tensor, input_view: int = 0) -> dict[str, Tensor]:
+    """A small stand-in for ``benchmark.metrics.segmentation_metrics``: ``ari``,
+    ``fg_ari`` (input view) and ``nv_ari`` (mean over the other views), each [B]."""
+    out: dict[str, list[float]] = {"ari": [], "fg_ari": [], "nv_ari": []}
+    for b in range(pred.shape[0]):
+        out["ari"].append(adjusted_rand_index(pred[b, input_view], gt[b, input_view]))
+        out["fg_ari"].append(
+            adjusted_rand_index(pred[b, input_view], gt[b, input_view], gt[b, input_view] > 0)
+        )
+        nv = [adjusted_rand_index(pred[b, v], gt[b, v])
+              for v in range(pred.shape[1]) if v != input_view]  # fmt: skip
+        out["nv_ari"].append(float(np.mean(nv)) if nv else math.nan)
+    return {k: torch.tensor(v, dtype=torch.float64) for k, v in out.items()}
+
+
+def make_eval_fn(
+    seg_metrics: SegMetricsFn | None = None, max_scenes: int = 8, input_view: int = 0
+) -> Callable[[SVORF, MultiViewDataset], dict[str, float]]:
+    """An ``eval_fn`` for :func:`svorf.train.train`: held-out segmentation and PSNR.
+
+    Renders every view of the first ``max_scenes`` scenes from ``input_view`` and returns
+    the scene means of ``seg_metrics`` (default :func:`segmentation_metrics_basic`) plus
+    ``psnr_input`` / ``psnr_novel`` (PSNR of the mean MSE) and ``n_scenes``.
+    """
+    seg = seg_metrics or segmentation_metrics_basic
+
+    def fn(model: SVORF, ds: MultiViewDataset) -> dict[str, float]:
+        n = min(max_scenes, len(ds))
+        preds, gts, mse_in, mse_nv = [], [], [], []
+        for i in range(n):
+            p = predict_scene(model, ds, i, input_view=input_view)
+            sv = ds[i]
+            preds.append(p["labels"])
+            gts.append(sv.instances)
+            err = ((p["rgb"] - sv.images.permute(0, 2, 3, 1)) ** 2).mean(dim=(1, 2, 3))
+            mse_in.append(float(err[input_view]))
+            others = [float(e) for v, e in enumerate(err) if v != input_view]
+            if others:
+                mse_nv.append(float(np.mean(others)))
+        m = seg(torch.stack(preds), torch.stack(gts), input_view)
+        res = {k: float(np.nanmean(v.double().numpy())) for k, v in m.items()}
+
+        def psnr(xs: list[float]) -> float:
+            return -10.0 * math.log10(max(float(np.mean(xs)), 1e-10)) if xs else math.nan
+
+        res.update(psnr_input=psnr(mse_in), psnr_novel=psnr(mse_nv), n_scenes=float(n))
+        return res
+
+    return fn
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def save_segmentation_grid(
+    model: SVORF, ds: MultiViewDataset, path: str | Path, n_scenes: int = 6, input_view: int = 0
+) -> Path:
+    """PNG: one row per held-out scene: input view, reconstruction, predicted slots (input
+    view), ground-truth instances, then predicted slots / ground truth of the next view."""
+    from PIL import Image
+
+    from svorf.viz import colorize_labels, to_uint8
+
+    rows = []
+    for i in range(min(n_scenes, len(ds))):
+        p = predict_scene(model, ds, i, input_view=input_view)
+        sv = ds[i]
+        nv = (input_view + 1) % ds.n_views
+        tiles = [
+            to_uint8(sv.images[input_view].permute(1, 2, 0)),
+            to_uint8(p["rgb"][input_view]),
+            colorize_labels(p["labels"][input_view], background=model.cfg.num_slots - 1),
+            colorize_labels(sv.instances[input_view], background=0),
+            to_uint8(p["rgb"][nv]),
+            colorize_labels(p["labels"][nv], background=model.cfg.num_slots - 1),
+            colorize_labels(sv.instances[nv], background=0),
+        ]
+        rows.append(np.concatenate([np.pad(t, ((1, 1), (1, 1), (0, 0))) for t in tiles], 1))
+    img = np.concatenate(rows, 0)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(img).resize((img.shape[1] * 2, img.shape[0] * 2), Image.NEAREST).save(path)
+    return path
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def train_eval(
+    data_dir: str | Path,
+    test_dir: str | Path,
+    out_dir: str | Path,
+    minutes: float,
+    model_cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    *,
+    seg_metrics: SegMetricsFn | None = None,
+    resume: bool = False,
+    grid_scenes: int = 6,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Train for ``minutes`` of training wall time (evaluations excluded), evaluating the
+    held-out split every ``train_cfg.eval_every`` steps (eval.jsonl), then write
+    ``grid.png`` and ``final_eval.json``. ``resume`` continues an interrupted run (the
+    budget counts the time already trained)."""
+    out = Path(out_dir)
+    eval_fn = make_eval_fn(seg_metrics, train_cfg.eval_scenes)
+    summary = train(data_dir, out, model_cfg, train_cfg, resume=resume, eval_fn=eval_fn,
+                    eval_data=test_dir, progress=progress, max_wall_s=minutes * 60.0)  # fmt: skip
+    model, info = load_run(out)
+    test = MultiViewDataset(test_dir, image_size=model_cfg.image_size,
+                            max_scenes=max(train_cfg.eval_scenes, grid_scenes))  # fmt: skip
+    with torch.no_grad():
+        final = eval_fn(model, test)
+    final.update(step=info.step, wall_s=info.wall_s)
+    (out / "final_eval.json").write_text(json.dumps(final, indent=2, sort_keys=True))
+    save_segmentation_grid(model, test, out / "grid.png", grid_scenes)
+    return {"summary": summary, "final": final, "grid": str(out / "grid.png")}
+
+
+def _benchmark_metrics() -> SegMetricsFn | None:
+    try:  # a tool-side convenience; svorf itself never needs benchmark
+        from benchmark.metrics import segmentation_metrics
+    except ImportError:
+        return None
+    return segmentation_metrics
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m svorf.recipe", description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("train-eval", help="time-budgeted cpu-recipe training with held-out eval")
+    t.add_argument("--data", required=True)
+    t.add_argument("--test", required=True)
+    t.add_argument("--out", required=True)
+    t.add_argument("--minutes", type=float, required=True)
+    t.add_argument("--preset", default="clevr567")
+    t.add_argument("--resume", action="store_true")
+    t.add_argument("--threads", type=int, default=2)
+    t.add_argument("--eval-every", type=int, default=150)
+    t.add_argument("--eval-scenes", type=int, default=8)
+    t.add_argument("--grid-scenes", type=int, default=6)
+    t.add_argument("--ray-sampling", default=None)
+    t.add_argument("--nvs-warmup", type=int, default=None)
+    t.add_argument("--fg-zmin", type=float, default=None, help="negative = off")
+    t.add_argument("--fg-box", type=float, default=None, help="<= 0 = off")
+    t.add_argument("--comp-temperature", type=float, default=None)
+    t.add_argument("--bg-outside-fg", type=int, default=None, help="1 = on, 0 = off")
+    t.add_argument("--lr", type=float, default=None)
+    t.add_argument("--warmup", type=int, default=None)
+    t.add_argument("--batch-scenes", type=int, default=None)
+    t.add_argument("--rays-per-scene", type=int, default=None)
+    t.add_argument("--seed", type=int, default=None)
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    levers: dict[str, Any] = {}
+    for name in ("ray_sampling", "nvs_warmup", "comp_temperature"):
+        if getattr(a, name) is not None:
+            levers[name] = getattr(a, name)
+    if a.fg_zmin is not None:
+        levers["fg_zmin"] = a.fg_zmin if a.fg_zmin >= 0 else None
+    if a.bg_outside_fg is not None:
+        levers["bg_outside_fg"] = bool(a.bg_outside_fg)
+    if a.fg_box is not None:
+        levers["fg_box"] = a.fg_box if a.fg_box > 0 else None
+    over = {k: getattr(a, k) for k in ("lr", "warmup", "batch_scenes", "rays_per_scene", "seed")
+            if getattr(a, k) is not None}  # fmt: skip
+    mcfg, tcfg = recipe_configs(a.preset, levers, steps=1_000_000, eval_every=a.eval_every,
+                                eval_scenes=a.eval_scenes, ckpt_every=100, **over)  # fmt: skip
+    res = train_eval(a.data, a.test, a.out, a.minutes, mcfg, tcfg,
+                     seg_metrics=_benchmark_metrics(), resume=a.resume,
+                     grid_scenes=a.grid_scenes)  # fmt: skip
+    print(json.dumps({"final": res["final"], "grid": res["grid"]}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

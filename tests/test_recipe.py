@@ -1,0 +1,178 @@
+"""The cpu recipe's levers (svorf/recipe.py, docs/cpu_recipe.md): each new config field
+changes the computation it names, the paper scale has them all off, and the time-budgeted
+driver stops, resumes and evaluates."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+import svorf.train as train_mod
+from svorf.compose import SlotGuidedComposer, masked_softmax
+from svorf.config import ModelConfig, model_config
+from svorf.data import MultiViewDataset
+from svorf.model import SVORF
+from svorf.recipe import (
+    RECIPE_LEVERS,
+    adjusted_rand_index,
+    make_eval_fn,
+    recipe_configs,
+    save_segmentation_grid,
+    segmentation_metrics_basic,
+    train_eval,
+)
+from svorf.synthetic import write_synthetic_split
+from svorf.train import TrainConfig, load_run, train, train_config
+
+
+@pytest.fixture(scope="module")
+def split(tmp_path_factory):
+    return write_synthetic_split(tmp_path_factory.mktemp("d") / "train", n_scenes=2,
+                                 resolution=32)  # fmt: skip
+
+
+def test_paper_scale_has_the_levers_off():
+    m = model_config("paper")
+    assert m.fg_zmin is None and m.fg_box is None and m.comp_temperature == 1.0
+    t = train_config("paper")
+    assert t.nvs_warmup == 0 and t.ray_sampling == "uniform"
+    assert ModelConfig().comp_temperature == 1.0 and TrainConfig().nvs_warmup == 0
+    # The recipe switches them on, on top of the cpu scale.
+    mr, tr = recipe_configs()
+    assert mr.fg_zmin == RECIPE_LEVERS["fg_zmin"] and tr.nvs_warmup == RECIPE_LEVERS["nvs_warmup"]
+    assert tr.ray_sampling == "object_heavy" and mr.image_size == 64
+    mr2, tr2 = recipe_configs(levers={"fg_zmin": None, "nvs_warmup": 0}, lr=1e-3)
+    assert mr2.fg_zmin is None and tr2.nvs_warmup == 0 and tr2.lr == 1e-3
+
+
+def test_invalid_values_are_rejected():
+    with pytest.raises(ValueError, match="comp_temperature"):
+        model_config("smoke", comp_temperature=0.0)
+    with pytest.raises(ValueError, match="nvs_warmup"):
+        TrainConfig(nvs_warmup=-1)
+
+
+def _model(**kw) -> SVORF:
+    torch.manual_seed(0)
+    return SVORF(model_config("smoke", num_slots=4, **kw)).eval()
+
+
+def test_fg_zmin_gives_the_floor_to_the_background_slot():
+    base = _model()
+    floor = _model(fg_zmin=0.0)
+    floor.load_state_dict(base.state_dict())
+    imgs = torch.rand(1, 3, 32, 32)
+    # Horizontal rays entirely below z = 0 (inside the scene box) and rays above it.
+    o = torch.tensor([[-4.0, -1.0, -1.0], [-4.0, 1.0, 1.0]])[None]
+    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])[None]
+    with torch.no_grad():
+        a, b = base(imgs, o, d), floor(imgs, o, d)
+    # Below the floor only the background slot (last) is left ...
+    assert torch.allclose(b.slot_probs[0, 0], torch.tensor([0.0, 0.0, 0.0, 1.0]), atol=1e-5)
+    assert a.slot_probs[0, 0, :3].sum() > 0.01
+    # ... above it the prior changes nothing.
+    torch.testing.assert_close(a.rgb[0, 1], b.rgb[0, 1])
+    torch.testing.assert_close(a.slot_probs[0, 1], b.slot_probs[0, 1])
+
+
+def test_comp_temperature_divides_the_composition_logits():
+    cfg = model_config("smoke", num_slots=4)
+    torch.manual_seed(0)
+    c1 = SlotGuidedComposer(cfg, 20)
+    c2 = SlotGuidedComposer(cfg.replace(comp_temperature=0.25), 20)
+    c2.load_state_dict(c1.state_dict())
+    gx, slots = torch.randn(2, 1, 7, 20), torch.randn(2, 4, cfg.slot_dim)
+    logits = c1.logits_kp(gx, slots)  # [B, K, P]
+    m1, m2 = c1(gx, slots), c2(gx, slots)
+    torch.testing.assert_close(m1, masked_softmax(logits, None, dim=1).transpose(1, 2))
+    torch.testing.assert_close(m2, masked_softmax(logits / 0.25, None, dim=1).transpose(1, 2))
+    # Sharper: the top slot gets more mass.
+    assert (m2.max(-1).values >= m1.max(-1).values - 1e-6).all()
+    # And the whole model's rendering changes.
+    a, b = _model(), _model(comp_temperature=0.25)
+    b.load_state_dict(a.state_dict())
+    imgs, o = torch.rand(1, 3, 32, 32), torch.tensor([0.0, -12.0, 6.0]).expand(1, 8, 3)
+    d = torch.nn.functional.normalize(-o + 0.3 * torch.randn(1, 8, 3), dim=-1)
+    with torch.no_grad():
+        assert not torch.allclose(a(imgs, o, d).rgb, b(imgs, o, d).rgb)
+
+
+def test_nvs_warmup_uses_input_view_rays_first(split, tmp_path, monkeypatch):
+    seen = []
+    orig = train_mod.RaySampler.sample
+
+    def spy(self, scenes, gen):
+        batch = orig(self, scenes, gen)
+        seen.append(bool((batch.target_view == batch.input_view[:, None]).all()))
+        return batch
+
+    monkeypatch.setattr(train_mod.RaySampler, "sample", spy)
+    mcfg = model_config("smoke", num_slots=4)
+    tcfg = train_config("smoke", steps=6, nvs_warmup=3, log_every=3, ckpt_every=6)
+    train(split, tmp_path / "r", mcfg, tcfg, progress=False)
+    assert seen[:3] == [True] * 3  # rays from the input view itself
+    assert seen[3:] == [False] * 3  # novel views afterwards (targets never the input view)
+
+
+def test_max_wall_s_stops_with_a_checkpoint_and_resumes(split, tmp_path):
+    mcfg = model_config("smoke", num_slots=4)
+    tcfg = train_config("smoke", steps=1000, ckpt_every=500)
+    s = train(split, tmp_path / "r", mcfg, tcfg, progress=False, max_wall_s=0.0)
+    assert s["steps"] == 1
+    _, info = load_run(tmp_path / "r")
+    assert info.step == 1
+    s2 = train(split, tmp_path / "r", mcfg, tcfg.replace(steps=3), resume=True, progress=False)
+    assert s2["start_step"] == 1 and s2["steps"] == 3
+
+
+def test_ari_matches_known_values():
+    gt = torch.tensor([0, 0, 1, 1, 2, 2])
+    assert adjusted_rand_index(gt, gt) == pytest.approx(1.0)
+    assert adjusted_rand_index(torch.tensor([5, 5, 7, 7, 9, 9]), gt) == pytest.approx(1.0)
+    # index 1, expected 3 * 3 / 15 = 0.6, max 3: (1 - 0.6) / (3 - 0.6) = 1/6
+    assert adjusted_rand_index(torch.tensor([0, 0, 1, 2, 1, 2]), gt) == pytest.approx(1 / 6)
+    assert math.isnan(adjusted_rand_index(gt, gt, torch.zeros(6, dtype=torch.bool)))
+    bm = pytest.importorskip("benchmark.metrics")
+    torch.manual_seed(0)
+    pred = torch.randint(0, 4, (2, 3, 8, 8))
+    true = torch.randint(0, 3, (2, 3, 8, 8))
+    ours, ref = segmentation_metrics_basic(pred, true, 0), bm.segmentation_metrics(pred, true, 0)
+    for k in ("ari", "fg_ari", "nv_ari"):
+        torch.testing.assert_close(ours[k], ref[k].double(), atol=1e-9, rtol=0)
+
+
+def test_train_eval_writes_metrics_and_grid(split, tmp_path):
+    mcfg = model_config("smoke", num_slots=4)
+    tcfg = train_config("smoke", steps=10_000, eval_every=2, eval_scenes=2, ckpt_every=100)
+    res = train_eval(split, split, tmp_path / "r", 0.0, mcfg, tcfg, grid_scenes=2)
+    final = json.loads((tmp_path / "r" / "final_eval.json").read_text())
+    for k in ("ari", "fg_ari", "nv_ari", "psnr_input", "psnr_novel"):
+        assert k in final
+    assert (tmp_path / "r" / "grid.png").stat().st_size > 0 and res["final"]["step"] == 1
+    ds = MultiViewDataset(split, image_size=32)
+    model, _ = load_run(tmp_path / "r")
+    out = make_eval_fn(None, 1)(model, ds)
+    assert 0 < out["psnr_input"] < 100
+    save_segmentation_grid(model, ds, tmp_path / "g.png", 1)
+
+
+def test_bg_outside_fg_keeps_the_background_slot_out_of_the_object_region():
+    base = _model(fg_zmin=0.0)
+    prior = _model(fg_zmin=0.0, bg_outside_fg=True)
+    prior.load_state_dict(base.state_dict())
+    imgs = torch.rand(1, 3, 32, 32)
+    o = torch.tensor([[-4.0, -1.0, -1.0], [-4.0, 1.0, 1.0]])[None]
+    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])[None]
+    with torch.no_grad():
+        a, b = base(imgs, o, d), prior(imgs, o, d)
+    # Below the floor: background only, as with fg_zmin alone.
+    torch.testing.assert_close(a.slot_probs[0, 0], b.slot_probs[0, 0])
+    # Above it: the background slot has no share at all (without the prior it has one).
+    assert float(b.slot_probs[0, 1, -1]) == 0.0 and float(a.slot_probs[0, 1, -1]) > 1e-3
+    assert not torch.allclose(a.rgb[0, 1], b.rgb[0, 1])
+    with pytest.raises(ValueError, match="bg_outside_fg"):
+        model_config("smoke", bg_outside_fg=True)
+    assert model_config("paper").bg_outside_fg is False
