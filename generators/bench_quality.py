@@ -39,7 +39,9 @@ def psnr8(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else float(10 * np.log10(255.0**2 / mse))
 
 
-def run(preset_name: str, n_scenes: int, resolution: int, ref_samples: int, threads: int) -> list[dict]:
+def run(
+    preset_name: str, n_scenes: int, resolution: int, ref_samples: int, threads: int
+) -> list[dict]:
     from generators.blender_backend import BlenderSession
     from generators.imageops import linear_to_srgb8
     from generators.presets import get_preset
@@ -53,7 +55,9 @@ def run(preset_name: str, n_scenes: int, resolution: int, ref_samples: int, thre
                            glossy_bounces=4)  # fmt: skip
     refs = []
     for s in specs:
-        refs.append([linear_to_srgb8(v.rgb_linear) for v in sess.render_scene(s.with_render(ref_settings))])
+        refs.append(
+            [linear_to_srgb8(v.rgb_linear) for v in sess.render_scene(s.with_render(ref_settings))]
+        )
     rows = []
     for label, kw in CANDIDATES:
         settings = replace(base, **kw)
@@ -61,7 +65,9 @@ def run(preset_name: str, n_scenes: int, resolution: int, ref_samples: int, thre
         for s, ref in zip(specs, refs, strict=True):
             views = sess.render_scene(s.with_render(settings))
             times += [v.render_s for v in views]
-            psnrs += [psnr8(linear_to_srgb8(v.rgb_linear), r) for v, r in zip(views, ref, strict=True)]
+            psnrs += [
+                psnr8(linear_to_srgb8(v.rgb_linear), r) for v, r in zip(views, ref, strict=True)
+            ]
         row = {"label": label, "settings": asdict(settings), "s_per_view": float(np.mean(times)),
                "psnr_db": float(np.mean(psnrs))}  # fmt: skip
         rows.append(row)

@@ -140,7 +140,9 @@ class BlenderSession:
         self.bpy = import_bpy()
         self.threads = int(threads)
         self._own_tmp = tmp_dir is None
-        self.tmp_dir = Path(tempfile.mkdtemp(prefix="svorf_bpy_")) if tmp_dir is None else Path(tmp_dir)
+        self.tmp_dir = (
+            Path(tempfile.mkdtemp(prefix="svorf_bpy_")) if tmp_dir is None else Path(tmp_dir)
+        )
         self.tmp_dir.mkdir(parents=True, exist_ok=True)
         if any(c in str(self.tmp_dir) for c in "{}#"):
             raise ValueError(f"tmp_dir must not contain braces or '#': {self.tmp_dir}")
@@ -217,7 +219,9 @@ class BlenderSession:
         me.update()
         return me
 
-    def _material(self, name: str, base_color_linear, roughness: float, specular: float, metallic: float):
+    def _material(
+        self, name: str, base_color_linear, roughness: float, specular: float, metallic: float
+    ):
         mat = self.bpy.data.materials.new(name)
         bsdf = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
         bsdf.inputs["Base Color"].default_value = (*base_color_linear, 1.0)
@@ -226,7 +230,9 @@ class BlenderSession:
         bsdf.inputs["Metallic"].default_value = metallic
         return mat
 
-    def _textured_material(self, name: str, texture_id: int, size: int, tile: float, roughness: float):
+    def _textured_material(
+        self, name: str, texture_id: int, size: int, tile: float, roughness: float
+    ):
         """Principled BSDF whose base colour is a procedural texture, box-projected in
         object coordinates (one repeat every ``tile`` world units; no UVs needed)."""
         from assets_procedural import cached_texture_path
@@ -249,8 +255,15 @@ class BlenderSession:
         nt.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
         return mat
 
-    def _add_object(self, name: str, mesh: geometry.TriMesh, material, pass_index: int,
-                    location=(0.0, 0.0, 0.0), yaw_deg: float = 0.0):
+    def _add_object(
+        self,
+        name: str,
+        mesh: geometry.TriMesh,
+        material,
+        pass_index: int,
+        location=(0.0, 0.0, 0.0),
+        yaw_deg: float = 0.0,
+    ):
         obj = self.bpy.data.objects.new(name, self._mesh(name, mesh))
         obj.data.materials.append(material)
         obj.location = location
@@ -268,14 +281,19 @@ class BlenderSession:
         from mathutils import Vector
 
         self._clear()
-        self._configure(spec.render)
+        with _quiet():  # the first Cycles setting probes for CUDA and warns on stderr
+            self._configure(spec.render)
         sc = bpy.context.scene
         g = spec.ground
         if g.floor_texture_id is None:
             ground_mat = self._material("ground", g.color_linear, g.roughness, 0.25, 0.0)
         else:
             ground_mat = self._textured_material(
-                "floor", g.floor_texture_id, g.texture_size or 256, g.texture_tile or 4.0, g.roughness
+                "floor",
+                g.floor_texture_id,
+                g.texture_size or 256,
+                g.texture_tile or 4.0,
+                g.roughness,
             )
         self._add_object("ground", g.floor_mesh(), ground_mat, 0)
         walls = g.wall_mesh()
@@ -284,7 +302,10 @@ class BlenderSession:
                 wall_mat = self._material("walls", g.color_linear, g.roughness, 0.25, 0.0)
             else:
                 wall_mat = self._textured_material(
-                    "walls", g.wall_texture_id, g.texture_size or 256, g.texture_tile or 4.0,
+                    "walls",
+                    g.wall_texture_id,
+                    g.texture_size or 256,
+                    g.texture_tile or 4.0,
                     g.roughness,
                 )
             self._add_object("walls", walls, wall_mat, 0)
@@ -355,7 +376,9 @@ class BlenderSession:
         ids = np.rint(idx)
         if ids.min() < 0 or ids.max() > 255:
             raise RuntimeError(f"object index pass out of uint8 range: {ids.min()}..{ids.max()}")
-        return ViewPasses(np.ascontiguousarray(rgb, dtype=np.float32), ids.astype(np.uint8), depth, dt)
+        return ViewPasses(
+            np.ascontiguousarray(rgb, dtype=np.float32), ids.astype(np.uint8), depth, dt
+        )
 
     def render_scene(self, spec: SceneSpec) -> list[ViewPasses]:
         """Build ``spec`` once and render all its views (camera moved between views)."""

@@ -1,7 +1,7 @@
 """The ``generate`` command (thin wrapper over ``pipeline.generate_dataset``).
 
     generate --preset clevr567 [--split train|test] [--n N] [--out DIR] [--workers W]
-             [--resolution 128] [--seed S] [--samples 16] [--denoise/--no-denoise]
+             [--resolution 128] [--seed S] [--samples 8] [--denoise/--no-denoise]
              [--bounces 4] [--threads T] [--shard i/n] [--camera-radius R]
              [--source DIR] [--no-progress]
     generate verify DIR
@@ -83,8 +83,12 @@ def _gen_parser() -> _Parser:
     ap.add_argument(
         "--shard", type=_shard, default=(0, 1), help="i/n: only scenes with index %% n == i"
     )
-    ap.add_argument("--camera-radius", type=float, default=None,
-                    help="override the preset's camera radius (closer cameras for small datasets)")
+    ap.add_argument(
+        "--camera-radius",
+        type=float,
+        default=None,
+        help="override the preset's camera radius (closer cameras for small datasets)",
+    )
     ap.add_argument("--source", type=Path, default=None,
                     help="derived presets (clevr567-gray): folder of the source renders to convert")  # fmt: skip
     ap.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")

@@ -43,7 +43,11 @@ def camera_position(radius: float, azimuth_deg: float, elevation_deg: float) -> 
     """
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     return np.array(
-        [radius * math.cos(el) * math.cos(az), radius * math.cos(el) * math.sin(az), radius * math.sin(el)]
+        [
+            radius * math.cos(el) * math.cos(az),
+            radius * math.cos(el) * math.sin(az),
+            radius * math.sin(el),
+        ]
     )
 
 
@@ -112,7 +116,9 @@ def pixel_rays(K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int)
     return origins, dirs
 
 
-def project(K: np.ndarray, cam_to_world: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def project(
+    K: np.ndarray, cam_to_world: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Project world points to continuous pixel coordinates.
 
     Args:

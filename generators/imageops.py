@@ -21,7 +21,9 @@ def srgb_oetf(x: np.ndarray) -> np.ndarray:
     ``12.92 x`` for ``x <= 0.0031308``, else ``1.055 x^(1/2.4) - 0.055``.
     """
     x = np.asarray(x, dtype=np.float64)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
+    return np.where(
+        x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055
+    )
 
 
 def linear_to_srgb8(rgb_linear: np.ndarray) -> np.ndarray:

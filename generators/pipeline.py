@@ -21,8 +21,8 @@ only the worker processes do, through ``blender_backend``.
 from __future__ import annotations
 
 import atexit
-import json
 import concurrent.futures as cf
+import json
 import multiprocessing as mp
 import os
 import time
@@ -137,10 +137,16 @@ class GenerateConfig:
         return self.split if self.split is not None else get_preset(self.preset).split_names()[0]
 
     def n_scenes(self) -> int:
-        return self.n if self.n is not None else get_preset(self.preset).split_size(self.split_name())
+        return (
+            self.n if self.n is not None else get_preset(self.preset).split_size(self.split_name())
+        )
 
     def out_dir(self) -> Path:
-        return Path(self.out) if self.out is not None else Path("data") / self.preset / self.split_name()
+        return (
+            Path(self.out)
+            if self.out is not None
+            else Path("data") / self.preset / self.split_name()
+        )
 
     def render_settings(self) -> RenderSettings:
         d = RenderSettings()
@@ -214,7 +220,11 @@ class GenerateSummary:
 
     def line(self) -> str:
         """One-line human summary."""
-        cyc = f"Cycles {self.render_s / self.views_rendered:.3f} s/view; " if self.views_rendered else ""
+        cyc = (
+            f"Cycles {self.render_s / self.views_rendered:.3f} s/view; "
+            if self.views_rendered
+            else ""
+        )
         conv = f", {self.scenes_converted} converted" if self.scenes_converted else ""
         return (
             f"{self.preset}/{self.split}: {self.scenes_this_run} scenes ({self.views_written} views) "
@@ -232,7 +242,9 @@ def _check_writable(out: Path) -> None:
     while not p.exists() and p.parent != p:
         p = p.parent
     if not p.is_dir():
-        raise ValueError(f"--out: {p} exists and is not a folder; pass a writable folder with --out")
+        raise ValueError(
+            f"--out: {p} exists and is not a folder; pass a writable folder with --out"
+        )
     if not os.access(p, os.W_OK | os.X_OK):
         raise ValueError(f"--out: {p} is not writable; pass a writable folder with --out")
 
@@ -446,7 +458,8 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
     complete = all(scenefmt.is_scene_complete(layout, i) for i in range(n))
     if complete:
         scenefmt.atomic_write_json(
-            layout.manifest, manifest(preset, split, n, cfg.resolution, cfg.seed, render, "complete")
+            layout.manifest,
+            manifest(preset, split, n, cfg.resolution, cfg.seed, render, "complete"),
         )
     return GenerateSummary(
         out=out,

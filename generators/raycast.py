@@ -45,9 +45,7 @@ def _intersector(mesh: geometry.TriMesh):
     return RayMeshIntersector(tm)
 
 
-def cast_view(
-    spec: SceneSpec, view: int, resolution: int | None = None, meshes=None
-) -> CastResult:
+def cast_view(spec: SceneSpec, view: int, resolution: int | None = None, meshes=None) -> CastResult:
     """Ray-cast view ``view`` of ``spec`` through every pixel centre.
 
     Args:

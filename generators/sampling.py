@@ -90,7 +90,9 @@ def _layout(preset: Preset, rules: ObjectRules, rng: np.random.Generator) -> lis
             r = CLEVR_SIZES[size_name]
             for _try in range(preset.max_placement_tries):
                 x, y = (float(v) for v in rng.uniform(-lim, lim, size=2))
-                if all(np.hypot(x - px, y - py) - r - pr >= preset.min_gap for px, py, pr in placed):
+                if all(
+                    np.hypot(x - px, y - py) - r - pr >= preset.min_gap for px, py, pr in placed
+                ):
                     break
             else:
                 break  # this object did not fit: restart the layout
@@ -147,7 +149,9 @@ def _room_layout(preset: Preset, rng: np.random.Generator) -> tuple[list[ObjectS
             r = probe.bounding_radius_xy
             for _try in range(preset.max_placement_tries):
                 x, y = (float(v) for v in rng.uniform(-lim, lim, size=2))
-                if all(np.hypot(x - px, y - py) - r - pr >= preset.min_gap for px, py, pr in placed):
+                if all(
+                    np.hypot(x - px, y - py) - r - pr >= preset.min_gap for px, py, pr in placed
+                ):
                     break
             else:
                 break
@@ -200,11 +204,17 @@ def _views(preset: Preset, rng: np.random.Generator) -> tuple[ViewSpec, ...]:
     views = []
     for k in range(cam.n_views):
         if cam.azimuth == "stratified":
-            az = base + k * 360.0 / cam.n_views + rng.uniform(-cam.azimuth_jitter_deg, cam.azimuth_jitter_deg)
+            az = (
+                base
+                + k * 360.0 / cam.n_views
+                + rng.uniform(-cam.azimuth_jitter_deg, cam.azimuth_jitter_deg)
+            )
         else:
             az = rng.uniform(0.0, 360.0)
         az = float(az % 360.0)
-        el = float(cam.elevation_deg + rng.uniform(-cam.elevation_jitter_deg, cam.elevation_jitter_deg))
+        el = float(
+            cam.elevation_deg + rng.uniform(-cam.elevation_jitter_deg, cam.elevation_jitter_deg)
+        )
         rad = float(cam.radius + rng.uniform(-cam.radius_jitter, cam.radius_jitter))
         c2w = geometry.look_at_cam_to_world(geometry.camera_position(rad, az, el))
         views.append(
@@ -220,9 +230,7 @@ def _views(preset: Preset, rng: np.random.Generator) -> tuple[ViewSpec, ...]:
     return tuple(views)
 
 
-def sample_scene(
-    preset: Preset, rng: np.random.Generator, *, split: str = "train"
-) -> SceneSpec:
+def sample_scene(preset: Preset, rng: np.random.Generator, *, split: str = "train") -> SceneSpec:
     """Draw one scene (no visibility check; see :func:`make_scene`).
 
     Draw order (part of the format: changing it changes every dataset): objects
@@ -256,7 +264,9 @@ def sample_scene(
         objects=tuple(objects),
         lights=lights,
         ground=ground,
-        world=WorldSpec(color_linear=preset.lights.world_color, strength=preset.lights.world_strength),
+        world=WorldSpec(
+            color_linear=preset.lights.world_color, strength=preset.lights.world_strength
+        ),
         views=views,
     )
 
@@ -284,7 +294,8 @@ def _corner_ids(spec: SceneSpec, meshes) -> np.ndarray:
         K = view.K(1, 1)  # normalised image coordinates
         c2w = view.c2w()
         d_cam = np.stack(
-            [(uu.ravel() - K[0, 2]) / K[0, 0], (vv.ravel() - K[1, 2]) / K[1, 1], np.ones(uu.size)], 1
+            [(uu.ravel() - K[0, 2]) / K[0, 0], (vv.ravel() - K[1, 2]) / K[1, 1], np.ones(uu.size)],
+            1,
         )
         dirs = d_cam @ c2w[:3, :3].T
         origins = np.broadcast_to(c2w[:3, 3], dirs.shape).copy()

@@ -84,9 +84,13 @@ class RenderSettings:
         if self.max_bounces < 0:
             raise ValueError(f"max_bounces must be >= 0, got {self.max_bounces}")
         if self.denoise_prefilter not in ("NONE", "FAST", "ACCURATE"):
-            raise ValueError(f"denoise_prefilter must be NONE/FAST/ACCURATE, got {self.denoise_prefilter!r}")
+            raise ValueError(
+                f"denoise_prefilter must be NONE/FAST/ACCURATE, got {self.denoise_prefilter!r}"
+            )
         if self.denoise_quality not in ("HIGH", "BALANCED", "FAST"):
-            raise ValueError(f"denoise_quality must be HIGH/BALANCED/FAST, got {self.denoise_quality!r}")
+            raise ValueError(
+                f"denoise_quality must be HIGH/BALANCED/FAST, got {self.denoise_quality!r}"
+            )
 
     def to_json(self) -> dict[str, Any]:
         return {

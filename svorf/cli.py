@@ -4,7 +4,7 @@ Usage::
 
     svorf train --data DIR --preset clevr567 --scale smoke|cpu|paper --out RUN
                 [--steps N] [--resume] [--seed S] [--eval-data DIR] [--image-size N]
-                [--device auto|cpu|cuda] [--max-scenes N] [--no-progress]
+                [--device auto|cpu|cuda] [--max-scenes N] [--threads N] [--no-progress]
     svorf render RUN --data DIR --scene I [--out DIR] [--input-view V] [--chunk N]
     svorf info --scale paper [--preset clevr567] [--image-size N]
 
@@ -54,6 +54,7 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--image-size", type=int, help="training resolution (default: the scale's)")
     t.add_argument("--device", help="auto (default), cpu, cuda or cuda:N")
     t.add_argument("--max-scenes", type=int, help="use only the first N scenes")
+    t.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     r = sub.add_parser("render", help="render one scene of a split with a trained run")
@@ -117,12 +118,25 @@ def _preset_for(data_preset: object) -> str:
     return names[0] if names else "<one of " + ", ".join(sorted(PRESETS)) + ">"
 
 
+def _set_threads(n: int) -> None:
+    import torch
+
+    torch.set_num_threads(n)
+
+
 def _cmd_train(a: argparse.Namespace) -> int:
     from svorf.model import SVORF
     from svorf.train import run_configs, train
 
-    overrides = {k: v for k, v in (("steps", a.steps), ("seed", a.seed), ("device", a.device))
-                 if v is not None}  # fmt: skip
+    if a.threads is not None:
+        if a.threads < 1:
+            raise _UsageError(f"--threads must be >= 1, got {a.threads}")
+        _set_threads(a.threads)
+    overrides = {
+        k: v
+        for k, v in (("steps", a.steps), ("seed", a.seed), ("device", a.device))
+        if v is not None
+    }
     mcfg, tcfg = run_configs(a.scale, a.preset, image_size=a.image_size, **overrides)
     _check_data(a.data, a.preset, a.scale, mcfg.image_size)
     if a.max_scenes is not None and a.max_scenes < 1:
@@ -133,10 +147,21 @@ def _cmd_train(a: argparse.Namespace) -> int:
         if (Path(a.out) / CHECKPOINT_NAME).exists():
             _read_checkpoint(Path(a.out) / CHECKPOINT_NAME)
     n = SVORF(mcfg).count_parameters()
-    print(f"svorf train: scale {a.scale}, preset {a.preset}, K={mcfg.num_slots}, "
-          f"image {mcfg.image_size}, {n:,} parameters, {tcfg.steps} steps", flush=True)  # fmt: skip
-    summary = train(a.data, a.out, mcfg, tcfg, resume=a.resume, eval_data=a.eval_data,
-                    max_scenes=a.max_scenes, progress=not a.no_progress)  # fmt: skip
+    print(
+        f"svorf train: scale {a.scale}, preset {a.preset}, K={mcfg.num_slots}, "
+        f"image {mcfg.image_size}, {n:,} parameters, {tcfg.steps} steps",
+        flush=True,
+    )
+    summary = train(
+        a.data,
+        a.out,
+        mcfg,
+        tcfg,
+        resume=a.resume,
+        eval_data=a.eval_data,
+        max_scenes=a.max_scenes,
+        progress=not a.no_progress,
+    )
     print(json.dumps(summary, indent=2))
     return 0
 
@@ -171,9 +196,11 @@ def _cmd_info(a: argparse.Namespace) -> int:
 
     mcfg, tcfg = run_configs(a.scale, a.preset, image_size=a.image_size)
     n = SVORF(mcfg).count_parameters()
-    print(f"scale {a.scale}, preset {a.preset}: {n:,} parameters "
-          f"(K={mcfg.num_slots}, image {mcfg.image_size}, samples {mcfg.n_coarse}+{mcfg.n_fine}; "
-          f"train: {tcfg.steps} steps x {tcfg.batch_scenes} scenes x {tcfg.rays_per_scene} rays)")  # fmt: skip
+    print(
+        f"scale {a.scale}, preset {a.preset}: {n:,} parameters "
+        f"(K={mcfg.num_slots}, image {mcfg.image_size}, samples {mcfg.n_coarse}+{mcfg.n_fine}; "
+        f"train: {tcfg.steps} steps x {tcfg.batch_scenes} scenes x {tcfg.rays_per_scene} rays)"
+    )
     return 0
 
 

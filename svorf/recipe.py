@@ -64,9 +64,10 @@ SegMetricsFn = Callable[[Tensor, Tensor, int], dict[str, Tensor]]
 #: model fields and train fields. ``recipe_configs(levers=...)`` overrides them.
 RECIPE_LEVERS: dict[str, Any] = {
     "ray_sampling": "object_heavy",
-    "nvs_warmup": 300,
+    "warmup": 100,
+    "nvs_warmup": 200,
     "fg_zmin": 0.05,
-    "fg_box": None,
+    "fg_box": 3.75,
     "bg_outside_fg": True,
     "comp_temperature": 1.0,
 }

@@ -121,8 +121,14 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
-        for name in ("steps", "batch_scenes", "rays_per_scene", "log_every", "ckpt_every",
-                     "eval_scenes"):  # fmt: skip
+        for name in (
+            "steps",
+            "batch_scenes",
+            "rays_per_scene",
+            "log_every",
+            "ckpt_every",
+            "eval_scenes",
+        ):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.warmup < 0 or self.eval_every < 0 or self.nvs_warmup < 0:
@@ -200,19 +206,41 @@ def train_config(scale: str, preset: str = "clevr567", **overrides: Any) -> Trai
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
     if scale == "smoke":
-        base = TrainConfig(steps=30, batch_scenes=2, rays_per_scene=64, lr=1e-3, warmup=5,
-                           log_every=5, ckpt_every=15)  # fmt: skip
+        base = TrainConfig(
+            steps=30,
+            batch_scenes=2,
+            rays_per_scene=64,
+            lr=1e-3,
+            warmup=5,
+            log_every=5,
+            ckpt_every=15,
+        )
     elif scale == "cpu":
         # ~1 h on 2 cores: one step of the cpu model (K=8, 16+16 samples) at 4 x 128 rays
         # took 1.2-1.9 s on a shared, overloaded 2-core Xeon (4 x 256: 2.6-3.1 s), about
         # 0.9 s when the machine is quiet. Object-heavy rays because uniform rays left the
         # DESIGN section 9 calibration model on a "mean scene" plateau.
-        base = TrainConfig(steps=4000, batch_scenes=4, rays_per_scene=128, lr=4e-4,
-                           warmup=500, log_every=25, ckpt_every=250, eval_every=1000,
-                           ray_sampling="object_heavy")  # fmt: skip
+        base = TrainConfig(
+            steps=4000,
+            batch_scenes=4,
+            rays_per_scene=128,
+            lr=4e-4,
+            warmup=500,
+            log_every=25,
+            ckpt_every=250,
+            eval_every=1000,
+            ray_sampling="object_heavy",
+        )
     elif scale == "paper":
-        base = TrainConfig(steps=150_000, batch_scenes=16, rays_per_scene=64, lr=1e-4,
-                           warmup=1000, log_every=100, ckpt_every=5000)  # fmt: skip
+        base = TrainConfig(
+            steps=150_000,
+            batch_scenes=16,
+            rays_per_scene=64,
+            lr=1e-4,
+            warmup=1000,
+            log_every=100,
+            ckpt_every=5000,
+        )
     else:
         raise ValueError(f"unknown scale {scale!r}; choose from {list(SCALES)}")
     return base.replace(**overrides)
@@ -224,8 +252,10 @@ def run_configs(
     """The (model, train) configs of a ``svorf train --scale S --preset P`` run."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
+    if scale not in SCALES:
+        raise ValueError(f"unknown scale {scale!r}; choose from {list(SCALES)}")
     spec = PRESETS[preset]
-    mcfg = model_config(scale, num_slots=spec.num_slots, image_size=image_size)  # type: ignore[arg-type]
+    mcfg = model_config(scale, num_slots=spec.num_slots, image_size=image_size)
     if spec.slot_mask_train:
         mcfg = mcfg.replace(slot_mask_train=spec.slot_mask_train)
     return mcfg, train_config(scale, preset, **train_overrides)
@@ -323,8 +353,9 @@ def load_run(
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"{path}: checkpoint does not match this code ({msg[:160]})") from e
     model.to(torch.device(device) if isinstance(device, str) else device).eval()
-    info = RunInfo(mcfg, tcfg, int(ckpt["step"]), dict(ckpt.get("dataset", {})),
-                   float(ckpt.get("wall_s", 0.0)))  # fmt: skip
+    info = RunInfo(
+        mcfg, tcfg, int(ckpt["step"]), dict(ckpt.get("dataset", {})), float(ckpt.get("wall_s", 0.0))
+    )
     return model, info
 
 
@@ -538,14 +569,17 @@ def train(
     dataset = MultiViewDataset(data_dir, image_size=model_cfg.image_size, max_scenes=max_scenes)
     eval_ds = None
     if eval_data is not None and train_cfg.eval_every:
-        eval_ds = MultiViewDataset(eval_data, image_size=model_cfg.image_size,
-                                   max_scenes=train_cfg.eval_scenes)  # fmt: skip
-    sampler = RaySampler(dataset, train_cfg.rays_per_scene, nvs=model_cfg.nvs,
-                         ray_sampling=train_cfg.ray_sampling)  # fmt: skip
+        eval_ds = MultiViewDataset(
+            eval_data, image_size=model_cfg.image_size, max_scenes=train_cfg.eval_scenes
+        )
+    sampler = RaySampler(
+        dataset, train_cfg.rays_per_scene, nvs=model_cfg.nvs, ray_sampling=train_cfg.ray_sampling
+    )
     sampler_warm = sampler
     if train_cfg.nvs_warmup and model_cfg.nvs:
-        sampler_warm = RaySampler(dataset, train_cfg.rays_per_scene, nvs=False,
-                                  ray_sampling=train_cfg.ray_sampling)  # fmt: skip
+        sampler_warm = RaySampler(
+            dataset, train_cfg.rays_per_scene, nvs=False, ray_sampling=train_cfg.ray_sampling
+        )
     data_info = {
         "fingerprint": dataset.fingerprint,
         "root": str(Path(data_dir).resolve()),
@@ -572,8 +606,11 @@ def train(
                 f"{ckpt_path}: resume with a different model config (fields {diff})"
             )
         old = ckpt["train_config"]
-        diff = sorted(k for k, v in train_cfg.to_dict().items()
-                      if k not in _RESUMABLE_CHANGES and old.get(k) != v)  # fmt: skip
+        diff = sorted(
+            k
+            for k, v in train_cfg.to_dict().items()
+            if k not in _RESUMABLE_CHANGES and old.get(k) != v
+        )
         if diff:
             raise CheckpointError(
                 f"{ckpt_path}: resume with a different train config (fields {diff})"
@@ -599,24 +636,32 @@ def train(
     else:
         for p in (log_path, eval_path):
             p.unlink(missing_ok=True)
-    atomic_write_json(out / "config.json", {
-        "model": model_cfg.to_dict(), "train": train_cfg.to_dict(), "dataset": data_info,
-    })  # fmt: skip
+    atomic_write_json(
+        out / "config.json",
+        {
+            "model": model_cfg.to_dict(),
+            "train": train_cfg.to_dict(),
+            "dataset": data_info,
+        },
+    )
 
     def save(step: int, wall: float) -> None:
-        _atomic_torch_save({
-            "format": CHECKPOINT_FORMAT,
-            "step": step,
-            "model": model.state_dict(),
-            "optimizer": opt.state_dict(),
-            "rng": _rng_state(gen),
-            "model_config": model_cfg.to_dict(),
-            "train_config": train_cfg.to_dict(),
-            "dataset": data_info,
-            "wall_s": wall,
-            "loss": last_loss,
-            "torch_version": str(torch.__version__),
-        }, ckpt_path)  # fmt: skip
+        _atomic_torch_save(
+            {
+                "format": CHECKPOINT_FORMAT,
+                "step": step,
+                "model": model.state_dict(),
+                "optimizer": opt.state_dict(),
+                "rng": _rng_state(gen),
+                "model_config": model_cfg.to_dict(),
+                "train_config": train_cfg.to_dict(),
+                "dataset": data_info,
+                "wall_s": wall,
+                "loss": last_loss,
+                "torch_version": str(torch.__version__),
+            },
+            ckpt_path,
+        )
 
     def run_eval(step: int, wall: float) -> None:
         assert eval_ds is not None
@@ -628,8 +673,10 @@ def train(
                 metrics = fn(model, eval_ds)
         finally:
             model.train()
-        _append_jsonl(eval_path, {"step": step, "wall_s": round(wall, 3),
-                                  **{k: float(v) for k, v in metrics.items()}})  # fmt: skip
+        _append_jsonl(
+            eval_path,
+            {"step": step, "wall_s": round(wall, 3), **{k: float(v) for k, v in metrics.items()}},
+        )
 
     saved: int | None = start if ckpt_path.exists() else None
 
@@ -642,8 +689,13 @@ def train(
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=train_cfg.steps, initial=start, desc="svorf train", unit="step",
-                   dynamic_ncols=True)  # fmt: skip
+        bar = tqdm(
+            total=train_cfg.steps,
+            initial=start,
+            desc="svorf train",
+            unit="step",
+            dynamic_ncols=True,
+        )
     model.train()
     t0 = time.perf_counter()
     paused = 0.0  # seconds spent in eval / checkpoint writing, kept out of wall_s
@@ -663,7 +715,8 @@ def train(
             if not torch.isfinite(loss):
                 shown = ", ".join(f"{k}={float(v):.4g}" for k, v in parts.items())
                 raise TrainingDiverged(
-                    f"non-finite loss {float(loss.detach())} at step {done} ({shown}); {_kept(saved)}"
+                    f"non-finite loss {float(loss.detach())} at step {done} ({shown}); "
+                    f"{_kept(saved)}"
                 )
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -683,11 +736,18 @@ def train(
             out_of_time = max_wall_s is not None and wall >= max_wall_s
             if done % train_cfg.log_every == 0 or done == train_cfg.steps or out_of_time:
                 sps = (done - last_log_step) / max(now - last_log_t, 1e-9)
-                _append_jsonl(log_path, {
-                    "step": done, "wall_s": round(wall, 3), "lr": lr, "loss": last_loss,
-                    "parts": {k: float(v) for k, v in parts.items()},
-                    "steps_per_s": round(sps, 4), "grad_norm": float(gnorm),
-                })  # fmt: skip
+                _append_jsonl(
+                    log_path,
+                    {
+                        "step": done,
+                        "wall_s": round(wall, 3),
+                        "lr": lr,
+                        "loss": last_loss,
+                        "parts": {k: float(v) for k, v in parts.items()},
+                        "steps_per_s": round(sps, 4),
+                        "grad_norm": float(gnorm),
+                    },
+                )
                 last_log_t, last_log_step = now, done
             tp = time.perf_counter()
             if eval_ds is not None and done % train_cfg.eval_every == 0:

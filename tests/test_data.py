@@ -20,10 +20,21 @@ from svorf.data import (
 from svorf.synthetic import write_synthetic_split
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    # The CI/dev boxes have 2 cores shared with other jobs: a second OpenMP thread that
+    # waits on a busy core makes tiny steps ~15x slower.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def split(tmp_path_factory):
-    return write_synthetic_split(tmp_path_factory.mktemp("synth") / "train", n_scenes=2,
-                                 resolution=32, seed=3)  # fmt: skip
+    return write_synthetic_split(
+        tmp_path_factory.mktemp("synth") / "train", n_scenes=2, resolution=32, seed=3
+    )
 
 
 @pytest.fixture(scope="module")

@@ -184,3 +184,35 @@ def test_contact_sheet_shape(split):
 
     sheet = contact_sheet(split)
     assert sheet.dtype == np.uint8 and sheet.shape == (2 * 36, 12 * 36, 3)
+
+
+def test_camera_radius_override_changes_the_rig_and_the_identity(tmp_path):
+    from generators.sampling import make_scene
+
+    cfg = GenerateConfig(preset="clevr567", camera_radius=8.0, n=1, resolution=32)
+    p = cfg.preset_obj()
+    assert p.camera.radius == 8.0
+    s = make_scene(p, "train", 0, 0)
+    assert all(abs(v.radius - 8.0) <= p.camera.radius_jitter + 1e-9 for v in s.views)
+    with pytest.raises(ValueError, match="camera_radius"):
+        GenerateConfig(preset="clevr567", camera_radius=0.1)
+
+
+def test_gray_scene_json_differs_only_by_flags():
+    from generators.imageops import GRAYSCALE_FORMULA, grayscale_rec601
+    from generators.writer import grayscale_json
+
+    d = {"preset": "clevr567", "seed": 0, "objects": []}
+    g = grayscale_json(d, "clevr567-gray", "converted")
+    assert g == {**d, "preset": "clevr567-gray", "grayscale": GRAYSCALE_FORMULA,
+                 "rgb_source": "converted"}  # fmt: skip
+    rgb = np.array([[[255, 0, 0], [0, 255, 0], [0, 0, 255], [10, 20, 30]]], np.uint8)
+    y = grayscale_rec601(rgb)
+    assert y[..., 0].tolist() == [[76, 150, 29, 18]] and (y == y[..., :1]).all()
+
+
+def test_manifest_is_deterministic_and_has_status(split):
+    m = read_json(split / "manifest.json")
+    assert "status" not in m or m["status"] in ("in_progress", "complete")
+    for k in m:
+        assert "time" not in k and "host" not in k

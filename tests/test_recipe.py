@@ -44,8 +44,11 @@ def test_paper_scale_has_the_levers_off():
     mr, tr = recipe_configs()
     assert mr.fg_zmin == RECIPE_LEVERS["fg_zmin"] and tr.nvs_warmup == RECIPE_LEVERS["nvs_warmup"]
     assert tr.ray_sampling == "object_heavy" and mr.image_size == 64
-    mr2, tr2 = recipe_configs(levers={"fg_zmin": None, "nvs_warmup": 0}, lr=1e-3)
+    assert mr.bg_outside_fg and mr.fg_box == 3.75 and tr.warmup == 100
+    off = {"fg_zmin": None, "fg_box": None, "bg_outside_fg": False, "nvs_warmup": 0}
+    mr2, tr2 = recipe_configs(levers=off, lr=1e-3)
     assert mr2.fg_zmin is None and tr2.nvs_warmup == 0 and tr2.lr == 1e-3
+    assert mr2 == model_config("cpu")
 
 
 def test_invalid_values_are_rejected():
