@@ -519,10 +519,13 @@ def _generator_ready() -> bool:
         from benchmark.generator_bridge import _entry_point
 
         _entry_point()
-        import bpy  # noqa: F401
     except Exception:  # noqa: BLE001 - any failure means "not ready here"
         return False
-    return True
+    # find_spec, not import: importing bpy here would break the generator's own import
+    # in this process ("No module named '_bpy'").
+    import importlib.util
+
+    return importlib.util.find_spec("bpy") is not None
 
 
 @pytest.mark.slow
