@@ -87,7 +87,7 @@ def recipe_configs(
     lv = {**RECIPE_LEVERS, **(levers or {})}
     model_kw = {k: lv.pop(k) for k in _MODEL_LEVERS if k in lv}
     mcfg, tcfg = run_configs("cpu", preset)
-    return mcfg.replace(**model_kw), tcfg.replace(**lv, **train_overrides)
+    return mcfg.replace(**model_kw), tcfg.replace(**{**lv, **train_overrides})
 
 
 # --------------------------------------------------------------------------- metrics

@@ -49,6 +49,7 @@ def test_paper_scale_has_the_levers_off():
     mr2, tr2 = recipe_configs(levers=off, lr=1e-3)
     assert mr2.fg_zmin is None and tr2.nvs_warmup == 0 and tr2.lr == 1e-3
     assert mr2 == model_config("cpu")
+    assert recipe_configs(warmup=5)[1].warmup == 5  # train overrides win over the levers
 
 
 def test_invalid_values_are_rejected():
