@@ -40,6 +40,7 @@ from scenefmt import (
     write_matrix_txt,
     write_rgb,
 )
+from scenefmt.clevr import CLEVR_COLORS, CLEVR_SIZES
 
 __all__ = ["RIG_ELEVATION_DEG", "RIG_RADIUS", "look_at_opencv", "write_synthetic_split"]
 
@@ -51,18 +52,8 @@ FOCAL_RATIO = 50.0 / 36.0
 #: Half side of the square ground plate (world units); beyond it rays miss.
 PLATE_HALF = 6.0
 
-# The eight CLEVR colours (name -> sRGB 0-255).
-_COLOURS = {
-    "gray": (87, 87, 87),
-    "red": (173, 35, 35),
-    "blue": (42, 75, 215),
-    "green": (29, 105, 20),
-    "brown": (129, 74, 25),
-    "purple": (129, 38, 192),
-    "cyan": (41, 208, 208),
-    "yellow": (255, 238, 51),
-}
-_SIZES = {"small": 0.35, "large": 0.7}
+_COLOURS = CLEVR_COLORS
+_SIZES = CLEVR_SIZES
 _PLATE_RGB = np.array([0.62, 0.62, 0.60])
 _SKY_RGB = np.array([0.08, 0.08, 0.10])
 _LIGHT_DIR = np.array([0.4, -0.3, 0.866]) / np.linalg.norm([0.4, -0.3, 0.866])
