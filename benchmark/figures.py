@@ -18,7 +18,14 @@ import numpy as np
 
 from scenefmt import atomic_write_bytes
 
-__all__ = ["bar_chart", "label_colors", "qualitative_grid", "speed_chart", "stability_chart"]
+__all__ = [
+    "bar_chart",
+    "label_colors",
+    "qualitative_grid",
+    "speed_chart",
+    "stability_chart",
+    "tradeoff_chart",
+]
 
 
 def _plt():
@@ -258,6 +265,96 @@ def stability_chart(path: str | os.PathLike, rows: list[dict[str, Any]]) -> str:
     ax.legend(fontsize=7)
     ax.set_title(
         "volume_render vs float64 reference (errors floored at 1e-12 for display)", fontsize=9
+    )
+    _save(fig, path)
+    return path.name
+
+
+def tradeoff_chart(
+    path: str | os.PathLike,
+    rows: list[dict[str, Any]],
+    scale: str,
+    rgb_tolerance: float,
+    floor: float = 1e-8,
+) -> str:
+    """Time-vs-error curves of the ``tradeoff`` protocol, one line per knob.
+
+    One column per weight set (``rows[i]["weights"]``); top: rgb max |diff|, bottom: depth
+    mean |diff|, both on a log axis against the speed-up over the knob-free baseline.
+    Every point is labelled with its setting; exact zeros (the off settings and those equal
+    to the baseline by construction) are hollow, unlabelled markers at ``floor``.
+
+    Args:
+        path: Output PNG.
+        rows: tradeoff rows (``knob``, ``setting``, ``weights``, ``reference`` and the
+            metrics ``speedup``, ``rgb_max_err``, ``depth_mean_err``).
+        scale: the measured scale (for the title).
+        rgb_tolerance: drawn as a dashed line on the rgb panels.
+        floor: display value of an error of exactly 0.
+
+    Returns:
+        The file name of ``path``.
+    """
+    plt = _plt()
+    path = Path(path)
+    sets = list(dict.fromkeys(r["weights"] for r in rows))
+    knobs = list(dict.fromkeys(r["knob"] for r in rows if not r.get("reference")))
+    colors = {k: plt.get_cmap("tab10")(i % 10) for i, k in enumerate(knobs)}
+    panels = (("rgb_max_err", "rgb max |diff|"), ("depth_mean_err", "depth mean |diff| (world)"))
+    fig, axes = plt.subplots(
+        len(panels), len(sets), figsize=(6.2 * len(sets), 4.2 * len(panels)), squeeze=False
+    )
+    for j, w in enumerate(sets):
+        sel = [r for r in rows if r["weights"] == w]
+        for i, (metric, ylabel) in enumerate(panels):
+            ax = axes[i][j]
+            for knob in knobs:
+                pts = [r for r in sel if r["knob"] == knob]
+                xy = [
+                    (r["metrics"].get("speedup"), r["metrics"].get(metric), r["setting"])
+                    for r in pts
+                    if r["metrics"].get("speedup") is not None
+                    and r["metrics"].get(metric) is not None
+                ]
+                if not xy:
+                    continue
+                xs = [x for x, _, _ in xy]
+                ys = [max(y, floor) for _, y, _ in xy]
+                ax.plot(xs, ys, "-o", color=colors[knob], ms=4, lw=1.2, label=knob)
+                for x, y, (_, raw, text) in zip(xs, ys, xy, strict=True):
+                    if raw == 0:  # off / exact settings pile up at the floor: hollow, unlabelled
+                        ax.plot([x], [y], "o", ms=6, mfc="white", mec=colors[knob])
+                        continue
+                    ax.annotate(
+                        text.split(" (")[0],
+                        (x, y),
+                        textcoords="offset points",
+                        xytext=(3, 3),
+                        fontsize=6,
+                        color=colors[knob],
+                    )
+            ref = [r for r in sel if r.get("reference")]
+            if ref:
+                ax.plot([1.0], [floor], "k*", ms=9, label="baseline (error 0)")
+            if metric == "rgb_max_err":
+                ax.axhline(
+                    rgb_tolerance,
+                    color="#d62728",
+                    ls="--",
+                    lw=1,
+                    label=f"tolerance {rgb_tolerance:g}",
+                )
+            ax.axvline(1.0, color="#9e9e9e", ls=":", lw=1)
+            ax.set_yscale("log")
+            ax.set_xlabel("speed-up over the knob-free baseline (x, >1 = faster)", fontsize=8)
+            ax.set_ylabel(f"{ylabel}, 0 drawn at {floor:g}", fontsize=8)
+            ax.set_title(f"{w} weights: {ylabel}", fontsize=9)
+            ax.tick_params(labelsize=7)
+            if i == 0:
+                ax.legend(fontsize=6, loc="best")
+    fig.suptitle(
+        f"tradeoff ({scale}): training-step speed-up vs evaluation-render error per speed knob",
+        fontsize=10,
     )
     _save(fig, path)
     return path.name

@@ -109,6 +109,8 @@ def _rows_table(rows: list[dict[str, Any]], scale: str) -> str:
         notes = []
         if "pass" in r:
             notes.append("pass" if r["pass"] else "<b>FAIL</b>")
+        if "within_tolerance" in r:
+            notes.append("within tolerance" if r["within_tolerance"] else "<b>beyond tolerance</b>")
         if r.get("note"):
             notes.append(_e(r["note"]))
         for m, why in sorted(r["null_reasons"].items()):

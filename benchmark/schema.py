@@ -90,6 +90,13 @@ METRIC_UNITS: dict[str, str] = {
     "nonfinite_count": "count",
     "error": "unitless",
     "time_s": "s",
+    # tradeoff: a speed knob's step time and render error against the knob-free model
+    "speedup": "ratio (knob-free median step time / this one; > 1 = faster)",
+    "rgb_max_err": "colour units [0,1] (max |diff|)",
+    "rgb_mean_err": "colour units [0,1] (mean |diff|)",
+    "depth_mean_err": "world units (mean |diff|)",
+    "slot_probs_max_err": "unitless [0,1] (max |diff|)",
+    "kept_pairs": "fraction of (point, slot) field evaluations",
 }
 
 _TOP_FIELDS: dict[str, type | tuple[type, ...]] = {

@@ -473,8 +473,9 @@ def test_cli_list_and_one_line_errors(capsys):
     assert "generalization" in capsys.readouterr().out
     assert cli_main(["run", "nope", "--scale", "smoke"]) == 2
     assert "unknown protocol 'nope'" in capsys.readouterr().err
-    assert cli_main(["run", "tradeoff", "--scale", "smoke"]) == 2
-    assert "not implemented yet" in capsys.readouterr().err
+    from benchmark.protocols import get_protocol
+
+    assert get_protocol("tradeoff").__name__ == "run_tradeoff"  # tests/test_tradeoff.py runs it
 
 
 @pytest.mark.skipif(
