@@ -20,6 +20,7 @@ SlotModule = Literal["transformer", "slot_attention"]
 EncoderNorm = Literal["batch", "group", "none"]
 DensityAct = Literal["softplus", "relu"]
 Scale = Literal["smoke", "cpu", "paper"]
+CoordFrame = Literal["world", "input_azimuth"]
 
 
 @dataclass(frozen=True)
@@ -113,6 +114,18 @@ class ModelConfig:
     clip_to_box: bool = False
     """Clip [near, far] of each ray to the scene box so samples lie only inside the scene
     (denser sampling for the same N). The paper samples [near, far]: off at paper scale."""
+    coord_frame: CoordFrame = "input_azimuth"
+    """Frame of the coordinates the networks see (gamma(x), gamma(d), the composition).
+    "input_azimuth": the world frame rotated about the up axis (z) so that the input
+    camera sits at azimuth 0 (uORF's convention for CLEVR/Room, whose code sVORF builds
+    on: the object fields live in the input viewer's azimuth frame). A single image does
+    not tell the camera's azimuth in a scene whose content is rotation-symmetric in
+    distribution, so world coordinates cannot be predicted from it; without this the cpu
+    scale learned only a rotation-averaged "mean scene" (DESIGN 9). The locality priors
+    (``fg_box``, ``fg_zmin``, ``clip_to_box``) stay in the world frame. "world": the
+    dataset's world frame. Renders pass the input camera as ``input_c2w``; without it the
+    input camera is taken to be at azimuth 0. Configs saved before this field existed
+    load as "world" (how they were trained)."""
     last_delta: float = 1e10
     """Length of the last sample's interval: "infinite" as in NeRF/uORF, so the last sample
     absorbs what the ray has left (the background slot supplies the colour)."""
@@ -183,6 +196,7 @@ class ModelConfig:
         _check_choice("slot_module", self.slot_module, SlotModule)
         _check_choice("enc_norm", self.enc_norm, EncoderNorm)
         _check_choice("density_act", self.density_act, DensityAct)
+        _check_choice("coord_frame", self.coord_frame, CoordFrame)
         positive = (
             "image_size",
             "enc_width",
@@ -276,6 +290,7 @@ class ModelConfig:
         if unknown:
             raise ValueError(f"ModelConfig.from_dict: unknown keys {unknown}")
         d = dict(d)
+        d.setdefault("coord_frame", "world")  # saved before the field existed: world frame
         if "enc_blocks" in d:
             d["enc_blocks"] = tuple(d["enc_blocks"])
         return cls(**d)

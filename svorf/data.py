@@ -695,6 +695,8 @@ class RayBatch:
         target_rgb: [B, R, 3] float32 in [0, 1].
         target_view: [B, R] int64 view index of each ray.
         target_pixel: [B, R] int64 flat pixel index ``v * W + u`` of each ray.
+        input_c2w: [B, 4, 4] float32 camera-to-world of each input view (the model's
+            ``input_c2w``: the frame of ``ModelConfig.coord_frame``).
     """
 
     scenes: Tensor
@@ -705,6 +707,7 @@ class RayBatch:
     target_rgb: Tensor
     target_view: Tensor
     target_pixel: Tensor
+    input_c2w: Tensor
 
     def to(self, device: torch.device | str) -> RayBatch:
         return RayBatch(**{k: getattr(self, k).to(device) for k in self.__dataclass_fields__})
@@ -765,7 +768,15 @@ class RaySampler:
         inputs = torch.randint(0, v_all, (len(scenes),), generator=generator)
         out = {
             k: []
-            for k in ("images", "rays_o", "rays_d", "target_rgb", "target_view", "target_pixel")
+            for k in (
+                "images",
+                "rays_o",
+                "rays_d",
+                "target_rgb",
+                "target_view",
+                "target_pixel",
+                "input_c2w",
+            )
         }
         for s, iv in zip(scenes.tolist(), inputs.tolist()):
             if self.nvs:
@@ -781,6 +792,7 @@ class RaySampler:
             out["target_rgb"].append(ds._rgb[s].reshape(v_all, h * w, 3)[vsel, pix].float() / 255.0)
             out["target_view"].append(vsel)
             out["target_pixel"].append(pix)
+            out["input_c2w"].append(ds._c2w[s][iv].float())
         return RayBatch(
             scenes=scenes, input_view=inputs, **{k: torch.stack(x) for k, x in out.items()}
         )

@@ -101,6 +101,25 @@ def _merge_queries(a: _Query, b: _Query, order: Tensor) -> _Query:
     )
 
 
+def azimuth_frame(cam_to_world: Tensor) -> Tensor:
+    """Rotation [B, 3, 3] from the world frame to the camera's azimuth frame.
+
+    The azimuth frame is the world frame (z up) rotated about z so that the camera centre
+    ``cam_to_world[:, :3, 3]`` lies in the x-z half-plane x >= 0 (azimuth 0): x_frame =
+    R @ x_world. A camera on the z axis (azimuth undefined) gives the identity.
+    """
+    c = cam_to_world[..., :3, 3].float()
+    phi = torch.atan2(c[..., 1], c[..., 0])  # atan2(0, 0) = 0
+    cos, sin = torch.cos(phi), torch.sin(phi)
+    zero, one = torch.zeros_like(phi), torch.ones_like(phi)
+    rows = [
+        torch.stack([cos, sin, zero], -1),
+        torch.stack([-sin, cos, zero], -1),
+        torch.stack([zero, zero, one], -1),
+    ]
+    return torch.stack(rows, -2)
+
+
 class SVORF(nn.Module):
     """The sVORF model (Qi et al., NeurIPS 2023) and its ablation variants (see ModelConfig).
 
@@ -160,6 +179,7 @@ class SVORF(nn.Module):
         perturb: bool = False,
         need_aux: bool = True,
         object_transforms: Tensor | None = None,
+        input_c2w: Tensor | None = None,
     ) -> RenderOutput:
         """Render rays of B scenes from their slots.
 
@@ -177,6 +197,11 @@ class SVORF(nn.Module):
             object_transforms: [B, K, 4, 4] affine maps moving each object (identity = not
                 moved); slot k's sample points (and directions) are mapped by the inverse
                 before its field and its composition logit are evaluated (paper 4.4).
+            input_c2w: [B, 4, 4] camera-to-world of each scene's input view (the image the
+                slots came from). With ``coord_frame="input_azimuth"`` the networks see
+                coordinates rotated about z by minus that camera's azimuth
+                (:func:`azimuth_frame`); None = the input camera is at azimuth 0. Ignored
+                with ``coord_frame="world"``.
         Returns:
             :class:`RenderOutput`.
         """
@@ -185,6 +210,14 @@ class SVORF(nn.Module):
         rays_d = rays_d.to(device=slots.device, dtype=torch.float32)
         if object_transforms is not None:
             object_transforms = object_transforms.to(slots.device, torch.float32).expand(B, K, 4, 4)
+        frame = None
+        if self.cfg.coord_frame == "input_azimuth" and input_c2w is not None:
+            if input_c2w.shape[-2:] != (4, 4) or input_c2w.reshape(-1, 4, 4).shape[0] not in (1, B):
+                raise ValueError(
+                    f"SVORF.render_rays: input_c2w must be [B={B}, 4, 4], "
+                    f"got {tuple(input_c2w.shape)}"
+                )
+            frame = azimuth_frame(input_c2w.reshape(-1, 4, 4).to(slots.device)).expand(B, 3, 3)
         is_bg = torch.zeros(B, K, dtype=torch.bool, device=slots.device)
         is_bg[:, -1] = True
         index = None
@@ -207,7 +240,7 @@ class SVORF(nn.Module):
                     )
                 slot_mask = None
         out = self._render(
-            slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, object_transforms
+            slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, object_transforms, frame
         )
         if index is not None and out.slot_probs is not None:
             full = out.slot_probs.new_zeros(B, rays_o.shape[1], K)
@@ -255,7 +288,9 @@ class SVORF(nn.Module):
             return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
         return contextlib.nullcontext()
 
-    def _render(self, slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, transforms):
+    def _render(
+        self, slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, transforms, frame
+    ):
         cfg = self.cfg
         B, R, _ = rays_o.shape
         if cfg.clip_to_box:
@@ -266,7 +301,7 @@ class SVORF(nn.Module):
         with self._autocast(slots.device):
             params = self.fields.params(slots)
         inv = None if transforms is None else torch.linalg.inv(transforms)
-        ctx = (slots, params, rays_o, rays_d, slot_mask, is_bg, inv)
+        ctx = (slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame)
 
         t_c = sample_stratified(near_r, far_r, R, cfg.n_coarse, perturb)
         q_c = self._query(ctx, t_c)
@@ -294,7 +329,7 @@ class SVORF(nn.Module):
 
     def _query(self, ctx, t: Tensor) -> _Query:
         """Composed field at samples t [B, R, N] of every ray."""
-        slots, params, rays_o, rays_d, slot_mask, is_bg, inv = ctx
+        slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame = ctx
         cfg = self.cfg
         B, R, N = t.shape
         K = slots.shape[1]
@@ -307,9 +342,14 @@ class SVORF(nn.Module):
         else:
             xk, dk = x[:, None], dirs[:, None]  # [B, 1, P, 3], [B, 1, R, 3]
         Kx = xk.shape[1]
+        # The networks see the input view's azimuth frame; the priors below use the world's.
+        xn, dn = xk, dk
+        if frame is not None:
+            xn = torch.einsum("bij,bkpj->bkpi", frame, xk)
+            dn = torch.einsum("bij,bkrj->bkri", frame, dk)
         # gamma() in float32 outside autocast (sin of large arguments is poor in bf16).
-        gx = positional_encoding(xk / cfg.box_half, cfg.pos_freqs_xyz, cfg.pos_include_input)
-        gd = positional_encoding(dk, cfg.pos_freqs_dir, cfg.pos_include_input)
+        gx = positional_encoding(xn / cfg.box_half, cfg.pos_freqs_xyz, cfg.pos_include_input)
+        gd = positional_encoding(dn, cfg.pos_freqs_dir, cfg.pos_include_input)
         gd = gd[:, :, :, None].expand(B, Kx, R, N, gd.shape[-1]).reshape(B, Kx, P, -1)
 
         valid = None if slot_mask is None else slot_mask[:, None, :]  # [B, 1, K]

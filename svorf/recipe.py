@@ -72,7 +72,7 @@ RECIPE_LEVERS: dict[str, Any] = {
     "comp_temperature": 1.0,
 }
 
-_MODEL_LEVERS = ("fg_zmin", "fg_box", "bg_outside_fg", "comp_temperature")
+_MODEL_LEVERS = ("fg_zmin", "fg_box", "bg_outside_fg", "comp_temperature", "coord_frame")
 
 
 def recipe_configs(
@@ -269,6 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--fg-zmin", type=float, default=None, help="negative = off")
     t.add_argument("--fg-box", type=float, default=None, help="<= 0 = off")
     t.add_argument("--comp-temperature", type=float, default=None)
+    t.add_argument("--coord-frame", choices=("input_azimuth", "world"), default=None)
     t.add_argument("--bg-outside-fg", type=int, default=None, help="1 = on, 0 = off")
     t.add_argument("--lr", type=float, default=None)
     t.add_argument("--warmup", type=int, default=None)
@@ -278,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     levers: dict[str, Any] = {}
-    for name in ("ray_sampling", "nvs_warmup", "comp_temperature"):
+    for name in ("ray_sampling", "nvs_warmup", "comp_temperature", "coord_frame"):
         if getattr(a, name) is not None:
             levers[name] = getattr(a, name)
     if a.fg_zmin is not None:

@@ -399,11 +399,12 @@ def predict_scene(
         sv = dataset[scene]
         v, (h, w) = dataset.n_views, dataset.image_hw
         slots = model.encode(sv.images[input_view : input_view + 1].to(device))
+        input_c2w = sv.cam_to_world[input_view : input_view + 1].to(device)
         rgb, depth_t, acc, probs = [], [], [], []
         for j in range(v):
             o = sv.rays_o[j].reshape(1, h * w, 3).to(device)
             d = sv.rays_d[j].reshape(1, h * w, 3).to(device)
-            out = model.render_chunked(slots, o, d, chunk)
+            out = model.render_chunked(slots, o, d, chunk, input_c2w=input_c2w)
             rgb.append(out.rgb[0].float().cpu())
             depth_t.append(out.depth[0].float().cpu())
             acc.append(out.acc[0].float().cpu())
@@ -709,7 +710,13 @@ def train(
             smp = sampler_warm if step < train_cfg.nvs_warmup else sampler
             batch = smp.sample(smp.sample_scenes(train_cfg.batch_scenes, gen), gen).to(device)
             # In train mode the model draws the packed-11 slot mask itself (global RNG).
-            out_r = model(batch.images, batch.rays_o, batch.rays_d, perturb=True)
+            out_r = model(
+                batch.images,
+                batch.rays_o,
+                batch.rays_d,
+                perturb=True,
+                input_c2w=batch.input_c2w,
+            )
             loss, parts = model.loss(out_r, batch.target_rgb)
             done = step + 1
             if not torch.isfinite(loss):

@@ -242,7 +242,7 @@ def test_slot_masking_zero_probability_no_nan(composition):
     is_bg = torch.zeros(2, 4, dtype=torch.bool)
     is_bg[:, -1] = True
     fast = model.render_rays(slots, o, d, slot_mask=uniform)
-    plain = model._render(slots, o, d, uniform, is_bg, False, True, None)
+    plain = model._render(slots, o, d, uniform, is_bg, False, True, None, None)
     for name in ("rgb", "depth", "slot_probs", "connectivity"):
         torch.testing.assert_close(getattr(fast, name), getattr(plain, name), atol=1e-5, rtol=1e-4)
 
@@ -265,7 +265,7 @@ def _query(model, slots, B=2, R=8, seed=0):
     K = slots.shape[1]
     is_bg = torch.zeros(B, K, dtype=torch.bool)
     is_bg[:, -1] = True
-    ctx = (slots, model.fields.params(slots), o, d, None, is_bg, None)
+    ctx = (slots, model.fields.params(slots), o, d, None, is_bg, None, None)
     t = torch.sort(torch.rand(B, R, 6) * 8 + 8, dim=-1).values
     return model._query(ctx, t)
 
@@ -482,3 +482,55 @@ def test_move_object_and_swap_background():
     assert torch.equal(swapped[:, :-1], slots[:, :-1]) and torch.equal(swapped[:, -1], other[:, -1])
     with pytest.raises(ValueError, match="slot_mixer"):
         smoke(composition="slot_mixer").render_rays(slots, o, d, object_transforms=tr)
+
+
+# ----------------------------------------------------------------------------- coordinate frame
+
+
+def _rot_z(ang: float) -> torch.Tensor:
+    c, s = math.cos(ang), math.sin(ang)
+    return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_azimuth_frame_puts_the_camera_at_azimuth_zero():
+    from svorf.model import azimuth_frame
+
+    c2w = torch.eye(4).repeat(3, 1, 1)
+    c2w[:, :3, 3] = torch.tensor([[3.0, 4.0, 6.0], [-2.0, -0.5, 1.0], [0.0, 0.0, 9.0]])
+    R = azimuth_frame(c2w)
+    torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3).expand(3, 3, 3))
+    c = torch.einsum("bij,bj->bi", R, c2w[:, :3, 3])
+    torch.testing.assert_close(c[:, 1], torch.zeros(3), atol=1e-6, rtol=0)
+    assert (c[:2, 0] > 0).all()
+    torch.testing.assert_close(c[:, 2], c2w[:, 2, 3])  # z untouched
+    torch.testing.assert_close(R[2], torch.eye(3))  # camera on the axis: identity
+
+
+@pytest.mark.parametrize("frame", ["input_azimuth", "world"])
+def test_input_azimuth_frame_makes_renders_rotation_invariant(frame):
+    """Rotating the scene (rays and input camera) about z by 90 degrees leaves the render of
+    an input_azimuth model unchanged (the networks see the same coordinates; the box priors
+    are invariant under 90-degree turns), and changes a world-frame model's render."""
+    model = smoke(num_slots=3, coord_frame=frame, fg_box=2.5, fg_zmin=0.1).eval()
+    slots = model.encode(make_images(2))
+    o, d = make_rays(2, 16)
+    c2w = torch.eye(4).repeat(2, 1, 1)
+    c2w[:, :3, 3] = o[:, 0]
+    rot4 = torch.eye(4)
+    rot4[:3, :3] = _rot_z(math.pi / 2)
+    a = model.render_rays(slots, o, d, input_c2w=c2w)
+    b = model.render_rays(slots, o @ rot4[:3, :3].T, d @ rot4[:3, :3].T, input_c2w=rot4 @ c2w)
+    same = all(
+        torch.allclose(getattr(a, n), getattr(b, n), atol=1e-4, rtol=1e-4)
+        for n in ("rgb", "depth", "slot_probs")
+    )
+    assert same == (frame == "input_azimuth")
+
+
+def test_configs_saved_without_coord_frame_load_as_world():
+    d = model_config("smoke").to_dict()
+    assert d["coord_frame"] == "input_azimuth"
+    del d["coord_frame"]
+    assert ModelConfig.from_dict(d).coord_frame == "world"
+    with pytest.raises(ValueError, match="coord_frame"):
+        model_config("smoke", coord_frame="camera")
