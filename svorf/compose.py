@@ -159,14 +159,20 @@ class SlotGuidedComposer(nn.Module):
             return torch.diagonal(logits, dim1=1, dim2=3)  # [B, P, K]
         return logits[:, 0]
 
-    def forward(self, gx: Tensor, slots: Tensor, valid: Tensor | None = None) -> Tensor:
+    def forward(
+        self, gx: Tensor, slots: Tensor, valid: Tensor | None = None, bias: Tensor | None = None
+    ) -> Tensor:
         """Soft slot masks m [B, P, K] (float32, rows sum to 1 over valid slots).
 
-        Returned as a transposed view of a contiguous [B, K, P] tensor (use ``reshape``)."""
+        ``bias`` [B, K, P] is added to the (temperature-scaled) logits (slot locality,
+        ``ModelConfig.slot_locality``). Returned as a transposed view of a contiguous
+        [B, K, P] tensor (use ``reshape``)."""
         vt = None if valid is None else valid.transpose(1, 2)  # [B, K, P|1]
         logits = self.logits_kp(gx, slots, valid)
         if self.temperature != 1.0:  # ModelConfig.comp_temperature (cpu recipe)
             logits = logits / self.temperature
+        if bias is not None:
+            logits = logits.float() + bias
         return masked_softmax(logits, vt, dim=1).transpose(1, 2)
 
 

@@ -190,6 +190,16 @@ class ModelConfig:
     """Temperature T of the slot-guided composition: m = softmax_k(logits / T). T < 1
     sharpens the soft masks (more decomposition pressure from the first steps). 1.0 = paper."""
 
+    slot_locality: float | None = None
+    """Slot-centred locality (cpu recipe): if set (a radius r, world units), every foreground
+    slot also predicts a centre c_k = e * tanh(Linear(s_k)) (e = ``fg_box`` or ``box_half``;
+    in the networks' frame, see ``coord_frame``), its density is multiplied by
+    g_k(x) = exp(-|x - c_k|^2 / (2 r^2)) and log g_k is added to its composition logit.
+    A slot can then only produce matter within a few r of its centre, so one slot cannot
+    explain objects that lie far apart: decomposition pressure from the first step (the
+    object-centric analogue of uORF's locality box). Label-free: the centres are learned
+    from the reconstruction loss alone. None = off (paper)."""
+
     def __post_init__(self) -> None:
         object.__setattr__(self, "enc_blocks", tuple(int(b) for b in self.enc_blocks))
         _check_choice("composition", self.composition, Composition)
@@ -254,6 +264,16 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.comp_temperature must be > 0, got {self.comp_temperature}"
             )
+        if self.slot_locality is not None:
+            if not self.slot_locality > 0:
+                raise ValueError(
+                    f"ModelConfig.slot_locality must be > 0 or None, got {self.slot_locality}"
+                )
+            if self.composition == "slot_mixer":
+                raise ValueError(
+                    "ModelConfig.slot_locality needs per-slot fields; composition='slot_mixer' "
+                    "mixes them (use slot_guided or density_weighted)"
+                )
         if self.last_delta <= 0 or self.sigma_max <= 0:
             raise ValueError("ModelConfig.last_delta and sigma_max must be > 0")
         if self.slot_mask_train != 0 and not 0 < self.slot_mask_train <= self.num_slots - 2:

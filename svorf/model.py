@@ -145,6 +145,9 @@ class SVORF(nn.Module):
         self.composer: SlotGuidedComposer | None = None
         if cfg.composition != "density_weighted":
             self.composer = SlotGuidedComposer(cfg, self.fields.in_x)
+        self.slot_centre: nn.Linear | None = None  # ModelConfig.slot_locality
+        if cfg.slot_locality is not None:
+            self.slot_centre = nn.Linear(cfg.slot_dim, 3)
 
     # ------------------------------------------------------------------ encoding
     def encode(self, images: Tensor) -> Tensor:
@@ -301,7 +304,7 @@ class SVORF(nn.Module):
         with self._autocast(slots.device):
             params = self.fields.params(slots)
         inv = None if transforms is None else torch.linalg.inv(transforms)
-        ctx = (slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame)
+        ctx = self.query_context(slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame)
 
         t_c = sample_stratified(near_r, far_r, R, cfg.n_coarse, perturb)
         q_c = self._query(ctx, t_c)
@@ -329,7 +332,7 @@ class SVORF(nn.Module):
 
     def _query(self, ctx, t: Tensor) -> _Query:
         """Composed field at samples t [B, R, N] of every ray."""
-        slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame = ctx
+        slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame, centres = ctx
         cfg = self.cfg
         B, R, N = t.shape
         K = slots.shape[1]
@@ -366,6 +369,11 @@ class SVORF(nn.Module):
                 fg_ok = (inside.expand(B, K, P) | is_bg[:, :, None]).transpose(1, 2)  # [B, P, K]
             valid = fg_ok if valid is None else valid & fg_ok
 
+        log_g = None  # [B, K, P] log of the slot-locality envelopes (0 for the background)
+        if centres is not None:
+            d2 = (xn - centres[:, :, None, :]).square().sum(-1)  # [B, K, P]
+            log_g = (-0.5 / cfg.slot_locality**2) * d2.masked_fill(is_bg[:, :, None], 0.0)
+
         with self._autocast(slots.device):
             if cfg.composition == "slot_mixer":
                 a = self.composer(gx[:, 0], slots, valid)  # [B, P, K]
@@ -376,7 +384,7 @@ class SVORF(nn.Module):
             elif cfg.composition == "slot_guided":
                 # m needs only gamma(x) and the slots: it is known before any field runs, so
                 # it can choose which (point, slot) pairs are worth evaluating.
-                m = self.composer(gx if inv is not None else gx[:, 0], slots, valid)
+                m = self.composer(gx if inv is not None else gx[:, 0], slots, valid, log_g)
                 keep = self._select_slots(m, valid)
                 m_eval = m
                 if keep is not None and self._selects_by_m(K):
@@ -384,10 +392,14 @@ class SVORF(nn.Module):
                     m_eval = m * keep
                     m_eval = m_eval / m_eval.sum(dim=-1, keepdim=True).clamp_min(1e-30)
                 sigma_k, rgb_k = self._eval_slots(params, gx, gd, keep)
+                if log_g is not None:
+                    sigma_k = sigma_k * log_g.exp()
                 sigma, rgb = compose(sigma_k, rgb_k, m_eval)
             else:
                 keep = None if valid is None else valid.expand(B, P, K)
                 sigma_k, rgb_k = self._eval_slots(params, gx, gd, keep)
+                if log_g is not None:
+                    sigma_k = sigma_k * log_g.exp()
                 sigma, rgb, m = compose_density_weighted(sigma_k, rgb_k, valid)
         return _Query(
             sigma.view(B, R, N),
@@ -395,6 +407,22 @@ class SVORF(nn.Module):
             sigma_k.float().view(B, K, R, N),
             m.float().reshape(B, R, N, K),  # the composer's m is a [B, K, P] transpose
         )
+
+    def query_context(
+        self, slots, params, rays_o, rays_d, slot_mask, is_bg, inv=None, frame=None
+    ) -> tuple:
+        """What :meth:`_query` needs besides the samples (tests and speedbench build it too):
+        slots [B, K, D], field params, rays [B, R, 3] (world), slot_mask [B, K] or None,
+        is_bg [B, K], inverse object transforms [B, K, 4, 4] or None, frame [B, 3, 3] or
+        None; the slot-locality centres are derived here."""
+        return (slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame, self._centres(slots))
+
+    def _centres(self, slots: Tensor) -> Tensor | None:
+        """Slot-locality centres [B, K, 3] (networks' frame), None when slot_locality is off."""
+        if self.slot_centre is None:
+            return None
+        extent = self.cfg.fg_box if self.cfg.fg_box is not None else self.cfg.box_half
+        return extent * torch.tanh(self.slot_centre(slots.float()))
 
     def _selects_by_m(self, K: int) -> bool:
         """Whether slot_topk / slot_keep_mass drop slots by m (slot_guided only)."""

@@ -276,6 +276,14 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--batch-scenes", type=int, default=None)
     t.add_argument("--rays-per-scene", type=int, default=None)
     t.add_argument("--seed", type=int, default=None)
+    t.add_argument(
+        "--model-set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="any other ModelConfig field (VALUE as JSON, else a string), repeatable; "
+        "e.g. --model-set slot_module=slot_attention",
+    )
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     levers: dict[str, Any] = {}
@@ -292,11 +300,24 @@ def main(argv: list[str] | None = None) -> int:
             if getattr(a, k) is not None}  # fmt: skip
     mcfg, tcfg = recipe_configs(a.preset, levers, steps=1_000_000, eval_every=a.eval_every,
                                 eval_scenes=a.eval_scenes, ckpt_every=100, **over)  # fmt: skip
+    if a.model_set:
+        mcfg = mcfg.replace(**dict(_parse_set(x) for x in a.model_set))
     res = train_eval(a.data, a.test, a.out, a.minutes, mcfg, tcfg,
                      seg_metrics=_benchmark_metrics(), resume=a.resume,
                      grid_scenes=a.grid_scenes)  # fmt: skip
     print(json.dumps({"final": res["final"], "grid": res["grid"]}, indent=2))
     return 0
+
+
+def _parse_set(item: str) -> tuple[str, Any]:
+    """"field=value" -> (field, JSON value or the raw string)."""
+    if "=" not in item:
+        raise SystemExit(f"--model-set expects FIELD=VALUE, got {item!r}")
+    key, raw = item.split("=", 1)
+    try:
+        return key.strip(), json.loads(raw)
+    except json.JSONDecodeError:
+        return key.strip(), raw
 
 
 if __name__ == "__main__":

@@ -176,7 +176,7 @@ def make_query_step(model: SVORF, batch):
             params = model.fields.params(slots)
         total = 0.0
         for t in ts:
-            q = model._query((slots, params, o, d, None, is_bg, None, None), t)
+            q = model._query(model.query_context(slots, params, o, d, None, is_bg), t)
             total = total + q.rgb.square().mean() + q.sigma.mean() + q.sigma_k.mean()
         total.backward()
         model.zero_grad(set_to_none=True)

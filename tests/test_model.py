@@ -265,8 +265,9 @@ def _query(model, slots, B=2, R=8, seed=0):
     K = slots.shape[1]
     is_bg = torch.zeros(B, K, dtype=torch.bool)
     is_bg[:, -1] = True
-    ctx = (slots, model.fields.params(slots), o, d, None, is_bg, None, None)
-    t = torch.sort(torch.rand(B, R, 6) * 8 + 8, dim=-1).values
+    ctx = model.query_context(slots, model.fields.params(slots), o, d, None, is_bg)
+    g = torch.Generator().manual_seed(seed)
+    t = torch.sort(torch.rand(B, R, 6, generator=g) * 8 + 8, dim=-1).values
     return model._query(ctx, t)
 
 
@@ -534,3 +535,33 @@ def test_configs_saved_without_coord_frame_load_as_world():
     assert ModelConfig.from_dict(d).coord_frame == "world"
     with pytest.raises(ValueError, match="coord_frame"):
         model_config("smoke", coord_frame="camera")
+
+
+# ----------------------------------------------------------------------------- slot locality
+
+
+def test_slot_locality_confines_each_foreground_slot_near_its_centre():
+    """With slot_locality = r every foreground slot's density is scaled by its Gaussian
+    envelope around the centre it predicts, and its composition logit gets log g."""
+    r = 0.5
+    model = smoke(num_slots=3, slot_locality=r).eval()
+    base = smoke(num_slots=3).eval()
+    base.load_state_dict(model.state_dict(), strict=False)
+    slots = model.encode(make_images(2))
+    centres = model._centres(slots)
+    assert centres.shape == (2, 3, 3) and (centres.abs() <= model.cfg.box_half).all()
+    q, q0 = _query(model, slots), _query(base, slots)
+    o, d = make_rays(2, 8)
+    g0 = torch.Generator().manual_seed(0)
+    t = torch.sort(torch.rand(2, 8, 6, generator=g0) * 8 + 8, dim=-1).values  # as _query's
+    x = o[:, :, None] + t[..., None] * d[:, :, None]  # [B, R, N, 3]
+    d2 = (x[:, None] - centres[:, :, None, None]).square().sum(-1)  # [B, K, R, N]
+    g = torch.exp(-d2 / (2 * r * r))
+    g[:, -1] = 1.0  # the background slot has no envelope
+    # Densities: the base model's fields times the envelope (same weights, same samples).
+    torch.testing.assert_close(q.sigma_k, q0.sigma_k * g, rtol=1e-4, atol=1e-6)
+    # Composition: m = softmax(logits + log g) = m0 g / sum(m0 g).
+    m0g = q0.m * g.permute(0, 2, 3, 1)
+    torch.testing.assert_close(q.m, m0g / m0g.sum(-1, keepdim=True), rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="slot_locality"):
+        model_config("smoke", slot_locality=0.0)

@@ -94,7 +94,7 @@ def query_pair(model, ref, B=2, R=16, N=8, seed=0, transforms=None):
     inv = None if transforms is None else torch.linalg.inv(transforms)
     qs = []
     for m in (model, ref):
-        ctx = (slots, m.fields.params(slots), o, d, None, is_bg, inv, None)
+        ctx = m.query_context(slots, m.fields.params(slots), o, d, None, is_bg, inv)
         qs.append(m._query(ctx, t))
     return qs
 
