@@ -18,15 +18,6 @@ Layout of one split folder (e.g. ``data/clevr567/train/``)::
 ``idx`` is the global view index ``scene * n_views + view``.
 """
 
-from scenefmt.layout import (
-    FORMAT_VERSION,
-    MASK_BG_LEVEL,
-    MASK_SENTINEL_LEVEL,
-    SplitLayout,
-    instances_from_uorf_mask,
-    is_scene_complete,
-    uorf_mask_from_instances,
-)
 from scenefmt.io import (
     atomic_write_bytes,
     atomic_write_json,
@@ -40,6 +31,15 @@ from scenefmt.io import (
     write_mask,
     write_matrix_txt,
     write_rgb,
+)
+from scenefmt.layout import (
+    FORMAT_VERSION,
+    MASK_BG_LEVEL,
+    MASK_SENTINEL_LEVEL,
+    SplitLayout,
+    instances_from_uorf_mask,
+    is_scene_complete,
+    uorf_mask_from_instances,
 )
 
 __all__ = [

@@ -93,7 +93,7 @@ def read_instances(path: str | os.PathLike) -> np.ndarray:
 
 def _oiio():
     try:
-        import OpenImageIO as oiio  # noqa: N813
+        import OpenImageIO as oiio
     except ImportError as e:  # pragma: no cover - install problem
         raise ImportError(
             "OpenImageIO is needed for depth EXRs: pip install 'openimageio>=3.0,<3.1'"

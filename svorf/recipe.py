@@ -310,7 +310,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _parse_set(item: str) -> tuple[str, Any]:
-    """"field=value" -> (field, JSON value or the raw string)."""
+    """ "field=value" -> (field, JSON value or the raw string)."""
     if "=" not in item:
         raise SystemExit(f"--model-set expects FIELD=VALUE, got {item!r}")
     key, raw = item.split("=", 1)

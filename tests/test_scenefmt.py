@@ -7,6 +7,7 @@ from PIL import Image
 from scenefmt import (
     MASK_BG_LEVEL,
     SplitLayout,
+    atomic_write_json,
     instances_from_uorf_mask,
     is_scene_complete,
     read_depth_exr,
@@ -20,7 +21,6 @@ from scenefmt import (
     write_mask,
     write_matrix_txt,
     write_rgb,
-    atomic_write_json,
 )
 
 
