@@ -6,8 +6,12 @@ benchmark needs from svorf:
 
 - configs: :func:`model_config` (scale, preset, ablation variant) and
   :func:`train_config` (scale, preset, seed, steps), both as frozen dataclasses
-  plus :func:`config_dict` to store them as JSON;
-- training: :func:`train` (resumable, into a run folder) and :func:`load_model`;
+  plus :func:`config_dict` to store them as JSON; both start from
+  :func:`base_configs`, the one place that picks svorf's configs per scale
+  (the ``cpu`` scale trains the CLEVR-567 family with the cpu recipe,
+  ``svorf.recipe.recipe_configs``, docs/cpu_recipe.md);
+- training: :func:`train` (resumable, into a run folder, optionally with a
+  wall-clock budget) and :func:`load_model`;
 - evaluation: :func:`open_dataset`, :func:`ground_truth`, :func:`predict_scene`;
 - data helpers: :func:`dataset_fingerprint`, :func:`write_synthetic_split`;
 - numerics: :func:`volume_render` (the ``stability`` protocol).
@@ -30,11 +34,15 @@ import torch
 
 __all__ = [
     "ADAPTER_VERSION",
+    "CPU_RECIPE_PRESETS",
+    "RECIPE_CONFIG_SOURCE",
     "VARIANTS",
     "VARIANT_LABELS",
     "Prediction",
     "SceneTruth",
+    "base_configs",
     "config_dict",
+    "config_source",
     "dataset_fingerprint",
     "ground_truth",
     "load_model",
@@ -114,16 +122,62 @@ def num_slots(train_preset: str, variant: str = "full") -> int:
     return int(presets[key].num_slots)
 
 
+#: svorf training presets whose ``cpu``-scale models train with the cpu recipe
+#: (``svorf.recipe.recipe_configs``, docs/cpu_recipe.md) instead of svorf's plain cpu
+#: scale (``svorf.train.run_configs("cpu", preset)``). The Room presets keep the plain
+#: cpu scale (the recipe's locality box and floor prior are CLEVR-specific). ``smoke``
+#: and ``paper`` never use the recipe. clevr567-gray is a test set only: its rows score
+#: the clevr567 model.
+CPU_RECIPE_PRESETS: tuple[str, ...] = ("clevr567", "clevr567-heldout", "packed-clevr11")
+
+RECIPE_CONFIG_SOURCE = "svorf.recipe.recipe_configs"
+SCALE_CONFIG_SOURCE = "svorf.train.run_configs"
+
+
+def config_source(scale: str, train_preset: str, variant: str = "full") -> str:
+    """Which svorf function gives the base configs of a model (see :func:`base_configs`)."""
+    key = svorf_preset(train_preset, variant)
+    return (
+        RECIPE_CONFIG_SOURCE
+        if scale == "cpu" and key in CPU_RECIPE_PRESETS
+        else SCALE_CONFIG_SOURCE
+    )
+
+
+def base_configs(
+    scale: str, train_preset: str, variant: str = "full", image_size: int | None = None
+) -> tuple[Any, Any]:
+    """svorf's (ModelConfig, TrainConfig) for a benchmark model, before ablation overrides.
+
+    The one place that decides where the configs come from: the cpu recipe
+    (``svorf.recipe.recipe_configs(preset)``) for ``--scale cpu`` on
+    :data:`CPU_RECIPE_PRESETS`, else ``svorf.train.run_configs(scale, preset)``.
+
+    Raises:
+        ValueError: on an unknown scale or preset (svorf's message).
+    """
+    key = svorf_preset(train_preset, variant)
+    if config_source(scale, train_preset, variant) == RECIPE_CONFIG_SOURCE:
+        from svorf.recipe import recipe_configs
+
+        mcfg, tcfg = recipe_configs(key)
+        if image_size is not None:
+            mcfg = dataclasses.replace(mcfg, image_size=int(image_size))
+        return mcfg, tcfg
+    return _svorf_train().run_configs(scale, key, image_size=image_size)
+
+
 def model_config(
     scale: str, train_preset: str, variant: str = "full", image_size: int | None = None
 ) -> Any:
     """The svorf ``ModelConfig`` of one benchmark model.
 
     Args:
-        scale: ``smoke`` / ``cpu`` / ``paper`` (svorf's size registry).
+        scale: ``smoke`` / ``cpu`` / ``paper`` (see :func:`base_configs`).
         train_preset: the dataset preset the model trains on (sets K via
             ``svorf.train.PRESETS``: 8 for CLEVR-567, 5 for the Room datasets).
-        variant: a key of :data:`VARIANTS` (ablation switches, packed-11 setting).
+        variant: a key of :data:`VARIANTS` (ablation switches, packed-11 setting),
+            applied on top of the base config.
         image_size: encoder input side; None = svorf's default for the scale.
 
     Raises:
@@ -131,9 +185,7 @@ def model_config(
     """
     if variant not in VARIANTS:
         raise ValueError(f"unknown model variant {variant!r}; known: {sorted(VARIANTS)}")
-    st = _svorf_train()
-    key = svorf_preset(train_preset, variant)
-    mcfg, _ = st.run_configs(scale, key, image_size=image_size)
+    mcfg, _ = base_configs(scale, train_preset, variant, image_size=image_size)
     overrides = dict(VARIANTS[variant])
     return dataclasses.replace(mcfg, **overrides) if overrides else mcfg
 
@@ -142,11 +194,11 @@ def train_config(
     scale: str, train_preset: str, variant: str, seed: int, device: str, steps: int | None = None
 ) -> Any:
     """svorf's ``TrainConfig`` for the model, with the benchmark's seed, device (and steps)."""
-    st = _svorf_train()
     changes: dict[str, Any] = {"seed": int(seed), "device": device}
     if steps is not None:
         changes["steps"] = int(steps)
-    return st.train_config(scale, svorf_preset(train_preset, variant), **changes)
+    _, tcfg = base_configs(scale, train_preset, variant)
+    return dataclasses.replace(tcfg, **changes)
 
 
 def config_dict(cfg: Any) -> dict[str, Any]:
@@ -164,16 +216,29 @@ def train(
     train_cfg: Any,
     *,
     progress: bool = True,
+    max_wall_s: float | None = None,
 ) -> dict[str, Any]:
     """Train (or resume training) one model into ``run_dir`` (svorf checkpoints there).
 
+    Args:
+        max_wall_s: training wall-time budget in seconds, summed over resumed calls
+            (svorf's ``train(max_wall_s=)``: evaluation and checkpoint writing are not
+            counted); the run stops at the budget or at ``train_cfg.steps``, whichever
+            comes first. None = steps only.
+
     Returns:
-        svorf's run summary (steps, final_loss, wall_s, s_per_step, peak_rss_mb,
-        params, device...), JSON-able (non-finite floats become None).
+        svorf's run summary (steps, train_wall_s, final_loss, wall_s, s_per_step,
+        peak_rss_mb, params, device...), JSON-able (non-finite floats become None).
     """
     st = _svorf_train()
     out = st.train(
-        Path(data_dir), Path(run_dir), model_cfg, train_cfg, resume=True, progress=progress
+        Path(data_dir),
+        Path(run_dir),
+        model_cfg,
+        train_cfg,
+        resume=True,
+        progress=progress,
+        max_wall_s=max_wall_s,
     )
     return _jsonable_summary(out)
 

@@ -4,7 +4,8 @@ Usage::
 
     benchmark run NAME [--scale smoke|cpu|paper] [--out DIR] [--data DIR]
                        [--device cpu|cuda|auto] [--data-source generator|synthetic]
-                       [--seed N] [--steps N] [--lpips-weights FILE] [--no-progress]
+                       [--seed N] [--steps N] [--train-minutes M] [--datasets A[,B]]
+                       [--lpips-weights FILE] [--no-progress]
     benchmark leaderboard DIR          # merge DIR/**/report.json -> DIR/leaderboard.json
     benchmark html DIR                 # (re)write DIR/index.html from DIR/report.json
     benchmark screenshot DIR [--png F] # render DIR/index.html with headless Chromium
@@ -52,6 +53,22 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0, help="base seed of data, training and evaluation")
     r.add_argument("--steps", type=int, default=None, help="override the scale's training steps")
     r.add_argument(
+        "--train-minutes",
+        type=float,
+        default=None,
+        metavar="M",
+        help="training wall-clock budget per model in minutes (evaluation and checkpoint "
+        "writes excluded); without --steps the budget alone stops training. Part of the "
+        "model cache key; table protocols only",
+    )
+    r.add_argument(
+        "--datasets",
+        default=None,
+        metavar="A[,B]",
+        help="table protocols: keep only these test datasets (e.g. clevr567); the report "
+        "notes the ones left out",
+    )
+    r.add_argument(
         "--lpips-weights", default=None, help="LPIPS AlexNet weight file (else null + reason)"
     )
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -79,10 +96,19 @@ def _device(name: str) -> str:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from benchmark.protocols import get_protocol
+    from benchmark.protocols import TABLE_PROTOCOLS, get_protocol
     from benchmark.runner import Context
 
     fn = get_protocol(args.name)
+    only = None
+    if args.datasets is not None:
+        only = [d.strip() for d in args.datasets.split(",") if d.strip()]
+    for flag, value in (("--datasets", only), ("--train-minutes", args.train_minutes)):
+        if value is not None and args.name not in TABLE_PROTOCOLS:
+            raise ValueError(
+                f"{flag} applies to the table protocols ({', '.join(TABLE_PROTOCOLS)}), "
+                f"not to {args.name!r}"
+            )
     ctx = Context(
         args.name,
         args.scale,
@@ -94,6 +120,8 @@ def _run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         lpips_weights=args.lpips_weights,
         train_steps=args.steps,
+        train_minutes=args.train_minutes,
+        only_datasets=only,
     )
     path = fn(ctx)
     report = json.loads(Path(path).read_text())
@@ -103,6 +131,13 @@ def _run(args: argparse.Namespace) -> int:
     )
     for v in report["verdicts"]:
         print(f"  {v['dataset']} / {v['model']}: {v['message']}")
+    for m in report["models"]:
+        b = m.get("train_budget") or {}
+        print(
+            f"  model {m['variant']} on {m['train_dataset']}: {b.get('steps_done')} steps, "
+            f"{m['train_wall_s'] / 60.0:.1f} min training"
+            + (f", stopped by {b['stopped_by']}" if b.get("stopped_by") else "")
+        )
     print(f"report: {path}")
     print(f"page:   {Path(path).parent / 'index.html'}")
     return 0

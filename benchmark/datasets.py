@@ -12,6 +12,18 @@ missing (or incomplete) it is made:
   sphere scenes; a stand-in for tests and machines without ``bpy``. Reports say
   so in each dataset's ``source`` and in a note.
 
+Existing splits (e.g. rendered by hand with ``generate``) are reused, never silently:
+
+- a split with at least the scale's scene count is used; one with fewer scenes is
+  extended by the generator when it was made with the scale's render settings and
+  seed (scene i does not depend on the count), else (the generator would refuse to
+  mix render settings) it is used as found when all of its own scenes are complete;
+- whatever is used, its actual scene count, resolution, render samples, denoising and
+  seed come from its manifest into the report, with ``deviations`` from the scale's
+  nominal settings; a deviating split not generated in this run is first checked with
+  ``generators.verify.verify_split`` (problems are an error);
+- another resolution than the scale's is an error.
+
 The fingerprint (SHA-256 over ``manifest.json`` and the scene JSONs, via the
 adapter) goes into the model cache key and into the report.
 """
@@ -20,7 +32,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +74,11 @@ class DatasetInfo:
     source: str
     generated_now: bool
     wall_s: float
+    render_samples: int | None = None
+    denoise: bool | None = None
+    data_seed: int | None = None
+    nominal: dict[str, Any] = field(default_factory=dict)
+    deviations: tuple[str, ...] = ()
 
     def to_report(self) -> dict[str, Any]:
         return {
@@ -74,6 +91,12 @@ class DatasetInfo:
             "n_views": self.n_views,
             "resolution": self.resolution,
             "source": self.source,
+            "render_samples": self.render_samples,
+            "denoise": self.denoise,
+            "data_seed": self.data_seed,
+            "nominal": dict(self.nominal),
+            "deviations": list(self.deviations),
+            "generated_now": self.generated_now,
         }
 
 
@@ -103,6 +126,61 @@ def _complete(root: Path, n_scenes: int, resolution: int) -> tuple[bool, str]:
     if len(done) < n_scenes:
         return False, f"{len(done)}/{n_scenes} scenes complete"
     return True, "complete"
+
+
+def _render_of(manifest: dict[str, Any]) -> tuple[int | None, bool | None, int | None]:
+    """``(render samples, denoise, seed)`` a manifest records (None where it does not)."""
+    render = manifest.get("render") if isinstance(manifest.get("render"), dict) else {}
+    samples, denoise, seed = render.get("samples"), render.get("denoise"), manifest.get("seed")
+    return (
+        int(samples) if isinstance(samples, (int, float)) else None,
+        bool(denoise) if isinstance(denoise, bool) else None,
+        int(seed) if isinstance(seed, (int, float)) else None,
+    )
+
+
+def _nominal(settings: ScaleSettings, n: int, seed: int, source: str) -> dict[str, Any]:
+    """What the scale asks of a split (render settings only for the generator)."""
+    out: dict[str, Any] = {"n_scenes": n, "resolution": settings.resolution}
+    if source == "generator":
+        out.update(render_samples=settings.render_samples, denoise=settings.denoise, seed=seed)
+    return out
+
+
+def _deviations(nominal: dict[str, Any], actual: dict[str, Any]) -> tuple[str, ...]:
+    """``"30 scenes (nominal 50)"``-style lines where a known actual value differs."""
+    names = {
+        "n_scenes": "scenes",
+        "resolution": "px resolution",
+        "render_samples": "render samples",
+        "denoise": "denoise",
+        "seed": "data seed",
+    }
+    out = []
+    for k, label in names.items():
+        want, got = nominal.get(k), actual.get(k)
+        if want is not None and got is not None and want != got:
+            out.append(f"{got} {label} (nominal {want})")
+    return tuple(out)
+
+
+def _own_scenes_complete(root: Path, manifest: dict[str, Any]) -> bool:
+    """All scenes the split's own manifest announces are complete on disk."""
+    n_own = int(manifest.get("n_scenes") or 0)
+    layout = SplitLayout(root, n_views=int(manifest.get("n_views", 4)))
+    return n_own > 0 and all(is_scene_complete(layout, s) for s in range(n_own))
+
+
+def _verify(root: Path) -> None:
+    """``generators.verify.verify_split``; ValueError naming the first problems."""
+    from generators.verify import verify_split
+
+    problems = verify_split(root, max_problems=5)
+    if problems:
+        raise ValueError(
+            f"{root}: the existing split fails generators.verify ({'; '.join(problems[:3])}); "
+            f"delete the folder (the benchmark then generates it) or pass another --data"
+        )
 
 
 def _to_gray_inplace(root: Path, n_scenes: int, n_views: int) -> None:
@@ -172,8 +250,13 @@ def ensure_dataset(
         seed: the generator's base seed.
         progress: show a progress bar while generating.
 
+    Returns:
+        The split's :class:`DatasetInfo` with its actual scene count, resolution and
+        render settings (from its manifest) and their deviations from the scale's.
+
     Raises:
-        ValueError: on an unknown source, or a folder holding another resolution.
+        ValueError: on an unknown source, a folder holding another resolution or made
+            by another source, or a reused deviating split that fails verification.
     """
     if source not in DATA_SOURCES:
         raise ValueError(f"data source must be one of {DATA_SOURCES}, got {source!r}")
@@ -181,7 +264,16 @@ def ensure_dataset(
     n = settings.n_scenes(preset, split)
     t0 = time.perf_counter()
     ok, why = _complete(root, n, settings.resolution)
+    nominal = _nominal(settings, n, seed, source)
     generated = False
+    if not ok and source == "generator" and (root / "manifest.json").is_file():
+        # An existing split the generator cannot extend (other render settings or seed:
+        # it refuses to mix them) is used as found when its own scenes are complete.
+        old = read_json(root / "manifest.json")
+        samples, denoise, old_seed = _render_of(old)
+        same = {"render_samples": samples, "denoise": denoise, "seed": old_seed}
+        if _deviations(nominal, same) and _own_scenes_complete(root, old):
+            ok, why = True, "complete as found"
     if ok:
         manifest = read_json(root / "manifest.json")
         found = str(manifest.get("generator", ""))
@@ -201,16 +293,36 @@ def ensure_dataset(
         if not ok:
             raise RuntimeError(f"{root}: still incomplete after generation ({why})")
     manifest = read_json(root / "manifest.json")
+    n_views = int(manifest.get("n_views", 4))
+    res = manifest.get("resolution", settings.resolution)
+    res = int(res[0] if isinstance(res, list) else res)
+    samples, denoise, data_seed = _render_of(manifest)
+    n_found = len(SplitLayout(root, n_views=n_views).scene_indices())  # what svorf.data loads
+    actual_settings = {
+        "n_scenes": n_found,
+        "resolution": res,
+        "render_samples": samples,
+        "denoise": denoise,
+        "seed": data_seed,
+    }
+    deviations = _deviations(nominal, actual_settings)
+    if deviations and not generated and source == "generator":
+        _verify(root)
     return DatasetInfo(
         name=f"{preset}/{split}",
         preset=preset,
         split=split,
         path=root,
         fingerprint=adapter.dataset_fingerprint(root),
-        n_scenes=n,
-        n_views=int(manifest.get("n_views", 4)),
-        resolution=settings.resolution,
+        n_scenes=n_found,
+        n_views=n_views,
+        resolution=res,
         source=source,
         generated_now=generated,
         wall_s=time.perf_counter() - t0,
+        render_samples=samples,
+        denoise=denoise,
+        data_seed=data_seed,
+        nominal=nominal,
+        deviations=deviations,
     )

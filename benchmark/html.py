@@ -230,13 +230,14 @@ def render_html(report: dict[str, Any]) -> str:
     if report["models"]:
         parts.append(
             "<h2>Models</h2><table><tr><th class=l>run key</th><th class=l>variant</th>"
-            "<th class=l>train data</th><th>seed</th><th>train s</th><th class=l>reused</th></tr>"
+            "<th class=l>train data</th><th>seed</th><th>steps</th><th>train s</th>"
+            "<th class=l>reused</th></tr>"
         )
         for m in report["models"]:
             parts.append(
                 f"<tr><td class=l><code>{_e(m['run_key'])}</code></td><td class=l>{_e(m['variant'])}</td>"
                 f"<td class=l>{_e(m['train_dataset'])}</td><td>{m['seed']}</td>"
-                f"<td>{m['train_wall_s']:.1f}</td><td class=l>{m['reused']}</td></tr>"
+                f"<td>{_e(str(m.get('steps_done', '')))}</td><td>{m['train_wall_s']:.1f}</td><td class=l>{m['reused']}</td></tr>"
             )
         parts.append(
             "</table><p>Full model and training configs are in <code>report.json</code>.</p>"

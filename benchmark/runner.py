@@ -7,12 +7,17 @@ protocol's function (``benchmark.protocols``), which declares its rows with
 Caching and resume (all writes atomic):
 
 - models: ``<out>/runs/<key>/`` with ``key = hash(dataset fingerprint, model config,
-  train config without bookkeeping fields, seed, adapter version)``. svorf writes its
-  checkpoints there and resumes an interrupted run; ``benchmark_run.json`` marks a
+  train config without bookkeeping fields, seed, adapter version[, training wall-time
+  budget])``. svorf writes its checkpoints there and resumes an interrupted run (a
+  budgeted run counts the time already trained); ``benchmark_run.json`` marks a
   finished one, which any later protocol with the same key reuses.
 - evaluations: ``<out>/evals/<model key>-<test fingerprint>-<eval key>/result.json``
   (+ ``sample.npz`` for the qualitative figure), shared by protocols.
-- rows: ``<out>/<protocol>-<scale>/rows/<row id>.json``; a rerun skips finished rows.
+- rows: ``<out>/<protocol>-<scale>/rows/<row id>.json``; a rerun skips finished rows
+  whose test data and model key are still the ones this run would use.
+
+``--datasets`` (``Context.only_datasets``) keeps the measured and paper rows of the
+named test datasets of a table protocol; the report's notes name the ones left out.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from benchmark.scales import ScaleSettings, get_scale
 from scenefmt import atomic_write_bytes
 
 __all__ = [
+    "BUDGET_STEP_CAP",
     "Context",
     "MeasuredRow",
     "ModelJob",
@@ -50,6 +56,10 @@ __all__ = [
 
 #: TrainConfig fields that do not change what is learned (left out of the cache key).
 _BOOKKEEPING = ("device", "log_every", "ckpt_every", "eval_every", "eval_scenes")
+
+#: Step limit of a run with a wall-clock budget (``--train-minutes``) and no ``--steps``:
+#: the budget is what stops it (as in ``python -m svorf.recipe train-eval --minutes``).
+BUDGET_STEP_CAP = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -95,6 +105,29 @@ class ModelRecord:
     reused: bool
     train_wall_s: float
     summary: dict[str, Any]
+    config_source: str = ""
+    train_budget_s: float | None = None
+
+    @property
+    def steps_done(self) -> int | None:
+        """Optimizer steps the run finished (svorf's summary), None if unknown."""
+        v = self.summary.get("steps")
+        return int(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+    def budget_report(self) -> dict[str, Any]:
+        """Steps done, training wall time and what stopped the run."""
+        cap = int(self.train_config.get("steps") or 0)
+        done = self.steps_done
+        return {
+            "minutes": None if self.train_budget_s is None else self.train_budget_s / 60.0,
+            "max_wall_s": self.train_budget_s,
+            "step_limit": cap,
+            "steps_done": done,
+            "train_wall_s": float(self.train_wall_s),
+            "stopped_by": None
+            if done is None
+            else ("steps" if done >= cap or self.train_budget_s is None else "time_budget"),
+        }
 
     def to_report(self) -> dict[str, Any]:
         return {
@@ -108,6 +141,9 @@ class ModelRecord:
             "seed": self.seed,
             "reused": self.reused,
             "train_wall_s": float(self.train_wall_s),
+            "steps_done": self.steps_done,
+            "config_source": self.config_source,
+            "train_budget": self.budget_report(),
             "summary": self.summary,
         }
 
@@ -134,7 +170,12 @@ class Context:
         seed: base seed (data, training and evaluation seeds derive from it).
         progress: show progress bars.
         lpips_weights: optional LPIPS weight file.
-        train_steps: override of the scale's training steps (None = the scale's).
+        train_steps: override of the scale's training steps (None = the scale's, or
+            :data:`BUDGET_STEP_CAP` with ``train_minutes``).
+        train_minutes: training wall-clock budget per model in minutes (None = steps
+            only); part of the model cache key and recorded in the report.
+        only_datasets: test datasets a table protocol keeps (None = all of them);
+            an unknown name is a ValueError when the protocol runs.
     """
 
     def __init__(
@@ -150,6 +191,8 @@ class Context:
         progress: bool = True,
         lpips_weights: str | None = None,
         train_steps: int | None = None,
+        train_minutes: float | None = None,
+        only_datasets: list[str] | tuple[str, ...] | None = None,
     ) -> None:
         self.protocol = protocol
         self.settings: ScaleSettings = get_scale(scale)
@@ -161,7 +204,24 @@ class Context:
         self.seeds = {"data": int(seed), "train": int(seed), "eval": int(seed)}
         self.progress = progress
         self.lpips_weights = lpips_weights
-        self.train_steps = train_steps if train_steps is not None else self.settings.train_steps
+        if train_minutes is not None and not (
+            isinstance(train_minutes, (int, float)) and math.isfinite(train_minutes)
+        ):
+            raise ValueError(f"--train-minutes must be a positive number, got {train_minutes!r}")
+        if train_minutes is not None and train_minutes <= 0:
+            raise ValueError(f"--train-minutes must be a positive number, got {train_minutes!r}")
+        if train_steps is not None and train_steps < 1:
+            raise ValueError(f"--steps must be >= 1, got {train_steps}")
+        self.train_minutes = None if train_minutes is None else float(train_minutes)
+        if train_steps is not None:
+            self.train_steps = train_steps
+        elif self.train_minutes is not None:
+            self.train_steps = BUDGET_STEP_CAP
+        else:
+            self.train_steps = self.settings.train_steps
+        self.only_datasets = (
+            None if only_datasets is None else tuple(dict.fromkeys(str(d) for d in only_datasets))
+        )
         self.report_dir = self.out / f"{protocol}-{scale}"
         self.timers = {"data": 0.0, "training": 0.0, "evaluation": 0.0}
         self.datasets: dict[tuple[str, str], DatasetInfo] = {}
@@ -203,6 +263,28 @@ class Context:
         )
         return mcfg, tcfg
 
+    @property
+    def train_budget_s(self) -> float | None:
+        """The training wall-time budget per model in seconds (None = steps only)."""
+        return None if self.train_minutes is None else self.train_minutes * 60.0
+
+    def model_key(self, job: ModelJob) -> tuple[str, dict[str, Any]]:
+        """``(cache key, key source)`` of ``job``'s run (needs its training split)."""
+        ds = self.dataset(job.train_preset, "train")
+        mcfg, tcfg = self.configs(job)
+        tdict = adapter.config_dict(tcfg)
+        key_src: dict[str, Any] = {
+            "adapter": adapter.ADAPTER_VERSION,
+            "dataset": ds.fingerprint,
+            "model": adapter.config_dict(mcfg),
+            "train": {k: v for k, v in tdict.items() if k not in _BOOKKEEPING},
+            "seed": self.seeds["train"],
+        }
+        if self.train_budget_s is not None:
+            # Only when set, so that the keys of step-limited runs stay what they were.
+            key_src["train_budget_s"] = self.train_budget_s
+        return stable_hash(key_src), key_src
+
     def model(self, job: ModelJob, train: bool = True) -> ModelRecord | None:
         """Train ``job`` or reuse the cached run with the same key (timed under ``training``).
 
@@ -211,14 +293,8 @@ class Context:
         ds = self.dataset(job.train_preset, "train")
         mcfg, tcfg = self.configs(job)
         mdict, tdict = adapter.config_dict(mcfg), adapter.config_dict(tcfg)
-        key_src = {
-            "adapter": adapter.ADAPTER_VERSION,
-            "dataset": ds.fingerprint,
-            "model": mdict,
-            "train": {k: v for k, v in tdict.items() if k not in _BOOKKEEPING},
-            "seed": self.seeds["train"],
-        }
-        key = stable_hash(key_src)
+        key, key_src = self.model_key(job)
+        source = adapter.config_source(self.scale, job.train_preset, job.variant)
         if key in self.models:
             return self.models[key]
         run_dir = self.out / "runs" / key
@@ -244,15 +320,25 @@ class Context:
                 True,
                 float(done.get("train_wall_s", 0.0)),
                 done.get("summary", {}),
+                source,
+                self.train_budget_s,
             )
         elif not train:
             return None
         else:
+            budget = (
+                ""
+                if self.train_minutes is None
+                else f"{self.train_minutes:g} min of training wall time, up to "
+            )
             _log(
-                f"model {job.variant} on {job.train_preset}: training run {key} ({tdict.get('steps')} steps)"
+                f"model {job.variant} on {job.train_preset}: training run {key} "
+                f"({budget}{tdict.get('steps')} steps; configs from {source})"
             )
             t = time.perf_counter()
-            summary = adapter.train(ds.path, run_dir, mcfg, tcfg, progress=self.progress)
+            summary = adapter.train(
+                ds.path, run_dir, mcfg, tcfg, progress=self.progress, max_wall_s=self.train_budget_s
+            )
             wall = time.perf_counter() - t
             self.timers["training"] += wall
             train_wall = summary.get("train_wall_s")
@@ -268,7 +354,18 @@ class Context:
                 },
             )
             rec = ModelRecord(
-                key, run_dir, job, ds, mdict, tdict, self.seeds["train"], False, train_wall, summary
+                key,
+                run_dir,
+                job,
+                ds,
+                mdict,
+                tdict,
+                self.seeds["train"],
+                False,
+                train_wall,
+                summary,
+                source,
+                self.train_budget_s,
             )
         self.models[key] = rec
         return rec
@@ -372,7 +469,9 @@ class Context:
         rep["scale_settings"] = {
             "benchmark": self.settings.to_dict(),
             "train_steps_override": self.train_steps,
+            "train_minutes": self.train_minutes,
             "data_source": self.data_source,
+            "only_datasets": None if self.only_datasets is None else list(self.only_datasets),
         }
         return rep
 
@@ -382,6 +481,41 @@ class Context:
 
         report["datasets"] = [d.to_report() for d in self.datasets.values()]
         report["models"] = [m.to_report() for m in self.models.values()]
+        for d in self.datasets.values():
+            if d.deviations:
+                self.notes.append(
+                    f"Dataset {d.name} ({d.path}) differs from the '{self.scale}' scale's "
+                    f"nominal settings: {'; '.join(d.deviations)}. "
+                    + (
+                        "It was generated so in this run."
+                        if d.generated_now
+                        else "It was found complete on disk and is used as found"
+                        + (" (checked with generators.verify)" if d.source == "generator" else "")
+                        + "; delete the folder to generate the nominal split."
+                    )
+                )
+        on_recipe = [
+            m for m in self.models.values() if m.config_source == adapter.RECIPE_CONFIG_SOURCE
+        ]
+        recipe = sorted({f"{m.job.variant} on {m.job.train_preset}" for m in on_recipe})
+        if recipe:
+            self.notes.append(
+                f"The '{self.scale}' scale trains the CLEVR-567-family models with the cpu "
+                f"recipe (svorf.recipe.recipe_configs, docs/cpu_recipe.md): {', '.join(recipe)}; "
+                "the ablation variants are applied on top of it."
+            )
+        if self.train_minutes is not None and self.models:
+            done = "; ".join(
+                f"{m.job.variant} on {m.job.train_preset}: {m.steps_done} steps in "
+                f"{m.train_wall_s / 60.0:.1f} min (stopped by {m.budget_report()['stopped_by']})"
+                for m in self.models.values()
+            )
+            self.notes.append(
+                f"Training budget: {self.train_minutes:g} min of training wall time per model "
+                f"(evaluation and checkpoint writes excluded), up to {self.train_steps} steps. "
+                f"{done}. Steps done depend on the machine's speed and load, so a budgeted "
+                "run is not reproducible step for step."
+            )
         if self.data_source == "synthetic":
             self.notes.append(
                 "Datasets are svorf.synthetic analytic sphere scenes (a stand-in for the "
@@ -564,6 +698,28 @@ def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[di
     return out
 
 
+def _filter_datasets(
+    ctx: Context, measured: list[MeasuredRow]
+) -> tuple[list[MeasuredRow], set[str] | None, list[str]]:
+    """Apply ``ctx.only_datasets``: ``(kept rows, kept test datasets or None, left out)``.
+
+    Raises:
+        ValueError: a name that is not a test dataset of this protocol (one line,
+            naming the valid ones).
+    """
+    if ctx.only_datasets is None:
+        return measured, None, []
+    known = list(dict.fromkeys(s.dataset for s in measured))
+    unknown = [d for d in ctx.only_datasets if d not in known]
+    if unknown or not ctx.only_datasets:
+        raise ValueError(
+            f"--datasets: unknown dataset {', '.join(map(repr, unknown)) or '(none given)'} "
+            f"for protocol {ctx.protocol!r}; choose from {', '.join(known)}"
+        )
+    keep = set(ctx.only_datasets)
+    return [s for s in measured if s.dataset in keep], keep, [d for d in known if d not in keep]
+
+
 def run_table_protocol(
     ctx: Context,
     tables: list[str],
@@ -585,6 +741,7 @@ def run_table_protocol(
     for t in tables:
         if t not in PAPER_TABLES:
             raise ValueError(f"unknown paper table {t!r}")
+    measured, keep, left_out = _filter_datasets(ctx, measured)
     report = ctx.base_report()
     store_ctx = {
         "scale": ctx.scale,
@@ -598,7 +755,13 @@ def run_table_protocol(
     store = RowStore(ctx.report_dir / "rows", store_ctx)
     rows: list[dict[str, Any]] = []
     for t in tables:
-        rows.extend(paper_rows(t))
+        rows.extend(r for r in paper_rows(t) if keep is None or r["dataset"] in keep)
+    if left_out:
+        ctx.notes.append(
+            f"Datasets left out by --datasets {','.join(ctx.only_datasets or ())}: "
+            f"{', '.join(left_out)} (neither their measured nor their paper rows are in "
+            "this report)."
+        )
     state: dict[str, Any] = {"records": {}, "tests": {}}
     skipped = 0
     unavailable: list[str] = []
@@ -614,7 +777,11 @@ def run_table_protocol(
             continue
         state["tests"][spec.dataset] = test
         stored = store.get(rid)
-        if stored is not None and stored.get("test_fingerprint") == test.fingerprint:
+        if (
+            stored is not None
+            and stored.get("test_fingerprint") == test.fingerprint
+            and stored.get("run_key") == ctx.model_key(spec.job)[0]
+        ):
             _log(f"row done, skipped: {spec.table} / {spec.model} / {spec.dataset}")
             skipped += 1
             rows.append(stored)

@@ -2,15 +2,18 @@
 
 Where this sits: every protocol reads one :class:`ScaleSettings` (``--scale``).
 Model sizes and training steps per scale belong to ``svorf``
-(``svorf.config.model_config(scale)`` / ``svorf.train.train_config(scale, preset)``);
-this module only fixes what the benchmark itself decides, and the report copies
+(``svorf.config.model_config(scale)`` / ``svorf.train.train_config(scale, preset)``;
+at the ``cpu`` scale the CLEVR-567 family uses ``svorf.recipe.recipe_configs``, see
+``benchmark.adapter.base_configs``); this module only fixes what the benchmark itself decides, and the report copies
 both into ``scale_settings`` so every number is written down.
 
 - ``smoke``: CI and tests; tiny datasets (4 train / 2 test scenes at 32x32, one
   render sample), a few training steps. Minutes for a protocol on 2 cores. It
   checks the plumbing; its metrics mean nothing.
 - ``cpu``: the honest small-machine version for a 2-core CPU (hours per protocol):
-  64x64, a few hundred training scenes; see the report for whether it decomposes.
+  64x64, a few hundred training scenes, the cpu recipe for CLEVR-567 models; see the
+  report for whether it decomposes. ``--datasets clevr567 --train-minutes 60`` makes one
+  table fit in about an hour and a half.
 - ``paper``: the paper's dataset sizes (uORF splits: 1000/500, Room-Diverse 5000/500)
   at 256x256 and the paper's model; meant for a GPU.
 """
@@ -101,8 +104,9 @@ SCALES: dict[str, ScaleSettings] = {
         notes=(
             (
                 "cpu: 64x64 renders, 240 training scenes (400 for Room-Diverse), 50 test "
-                "scenes, the svorf 'cpu' model and training schedule (a 2-core machine, "
-                "hours per protocol)."
+                "scenes, the svorf 'cpu' model; CLEVR-567-family models train with the cpu "
+                "recipe (svorf.recipe.recipe_configs, docs/cpu_recipe.md), Room models with "
+                "svorf's cpu schedule (a 2-core machine, hours per protocol)."
             ),
         ),
     ),

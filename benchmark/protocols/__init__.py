@@ -14,7 +14,7 @@ from pathlib import Path
 
 from benchmark.runner import Context
 
-__all__ = ["PROTOCOLS", "NotImplementedProtocol", "get_protocol"]
+__all__ = ["PROTOCOLS", "TABLE_PROTOCOLS", "NotImplementedProtocol", "get_protocol"]
 
 
 class NotImplementedProtocol(NotImplementedError):
@@ -42,6 +42,11 @@ PROTOCOLS: dict[str, Callable[[Context], Path]] = {
     "tradeoff": _lazy("tradeoff", "run_tradeoff"),
     "stability": _lazy("stability", "run_stability"),
 }
+
+
+#: Protocols made of paper tables (``run_table_protocol``): they train models and have a
+#: dataset axis, so ``--datasets`` and ``--train-minutes`` apply to them.
+TABLE_PROTOCOLS: tuple[str, ...] = ("segmentation", "nvs", "ablation", "generalization")
 
 
 def get_protocol(name: str) -> Callable[[Context], Path]:
