@@ -70,9 +70,18 @@ RECIPE_LEVERS: dict[str, Any] = {
     "fg_box": 3.75,
     "bg_outside_fg": True,
     "comp_temperature": 1.0,
+    "coord_frame": "input_azimuth",
+    "slot_locality": 1.0,
 }
 
-_MODEL_LEVERS = ("fg_zmin", "fg_box", "bg_outside_fg", "comp_temperature", "coord_frame")
+_MODEL_LEVERS = (
+    "fg_zmin",
+    "fg_box",
+    "bg_outside_fg",
+    "comp_temperature",
+    "coord_frame",
+    "slot_locality",
+)
 
 
 def recipe_configs(
@@ -221,21 +230,22 @@ def train_eval(
     seg_metrics: SegMetricsFn | None = None,
     resume: bool = False,
     grid_scenes: int = 6,
+    final_scenes: int | None = None,
     progress: bool = False,
 ) -> dict[str, Any]:
     """Train for ``minutes`` of training wall time (evaluations excluded), evaluating the
     held-out split every ``train_cfg.eval_every`` steps (eval.jsonl), then write
     ``grid.png`` and ``final_eval.json``. ``resume`` continues an interrupted run (the
-    budget counts the time already trained)."""
+    budget counts the time already trained). ``final_scenes``: test scenes of the final
+    evaluation (None = every scene of ``test_dir``)."""
     out = Path(out_dir)
     eval_fn = make_eval_fn(seg_metrics, train_cfg.eval_scenes)
     summary = train(data_dir, out, model_cfg, train_cfg, resume=resume, eval_fn=eval_fn,
                     eval_data=test_dir, progress=progress, max_wall_s=minutes * 60.0)  # fmt: skip
     model, info = load_run(out)
-    test = MultiViewDataset(test_dir, image_size=model_cfg.image_size,
-                            max_scenes=max(train_cfg.eval_scenes, grid_scenes))  # fmt: skip
+    test = MultiViewDataset(test_dir, image_size=model_cfg.image_size, max_scenes=final_scenes)
     with torch.no_grad():
-        final = eval_fn(model, test)
+        final = make_eval_fn(seg_metrics, len(test))(model, test)
     final.update(step=info.step, wall_s=info.wall_s)
     (out / "final_eval.json").write_text(json.dumps(final, indent=2, sort_keys=True))
     save_segmentation_grid(model, test, out / "grid.png", grid_scenes)
@@ -264,6 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--eval-every", type=int, default=150)
     t.add_argument("--eval-scenes", type=int, default=8)
     t.add_argument("--grid-scenes", type=int, default=6)
+    t.add_argument("--final-scenes", type=int, default=None, help="default: all test scenes")
     t.add_argument("--ray-sampling", default=None)
     t.add_argument("--nvs-warmup", type=int, default=None)
     t.add_argument("--fg-zmin", type=float, default=None, help="negative = off")
@@ -304,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         mcfg = mcfg.replace(**dict(_parse_set(x) for x in a.model_set))
     res = train_eval(a.data, a.test, a.out, a.minutes, mcfg, tcfg,
                      seg_metrics=_benchmark_metrics(), resume=a.resume,
-                     grid_scenes=a.grid_scenes)  # fmt: skip
+                     grid_scenes=a.grid_scenes, final_scenes=a.final_scenes)  # fmt: skip
     print(json.dumps({"final": res["final"], "grid": res["grid"]}, indent=2))
     return 0
 
