@@ -369,6 +369,7 @@ def predict_scene(
     scene: int,
     input_view: int = 0,
     chunk: int = 4096,
+    slots_scene: int | None = None,
 ) -> dict[str, Any]:
     """Encode one view of a scene and render every view at the dataset's resolution.
 
@@ -379,6 +380,10 @@ def predict_scene(
             maps positions to scene numbers).
         input_view: the view fed to the encoder.
         chunk: rays per rendering chunk (memory bound).
+        slots_scene: if given, the slots come from this scene's ``input_view`` instead
+            (placed in ``scene``'s input-camera frame): a control that shows how much of a
+            segmentation does not depend on the scene (a fixed spatial tiling scores the
+            same with another scene's slots; a decomposition does not).
 
     Returns:
         dict of CPU tensors and ints:
@@ -398,7 +403,8 @@ def predict_scene(
     try:
         sv = dataset[scene]
         v, (h, w) = dataset.n_views, dataset.image_hw
-        slots = model.encode(sv.images[input_view : input_view + 1].to(device))
+        src = sv if slots_scene is None else dataset[slots_scene]
+        slots = model.encode(src.images[input_view : input_view + 1].to(device))
         input_c2w = sv.cam_to_world[input_view : input_view + 1].to(device)
         rgb, depth_t, acc, probs = [], [], [], []
         for j in range(v):
