@@ -12,7 +12,8 @@ benchmark needs from svorf:
   ``svorf.recipe.recipe_configs``, docs/cpu_recipe.md);
 - training: :func:`train` (resumable, into a run folder, optionally with a
   wall-clock budget) and :func:`load_model`;
-- evaluation: :func:`open_dataset`, :func:`ground_truth`, :func:`predict_scene`;
+- evaluation: :func:`open_dataset`, :func:`ground_truth`, :func:`predict_scene`
+  (optionally with another scene's slots, ``slots_scene``, and only the input view);
 - data helpers: :func:`dataset_fingerprint`, :func:`write_synthetic_split`;
 - numerics: :func:`volume_render` (the ``stability`` protocol).
 
@@ -298,6 +299,9 @@ def ground_truth(dataset: Any, index: int) -> SceneTruth:
 class Prediction:
     """What the model renders for one scene from its input view (CPU tensors).
 
+    V is the scene's view count, or 1 (the input view) for
+    ``predict_scene(..., input_view_only=True)``.
+
     Attributes:
         rgb: float32 [V, 3, H, W] in [0, 1] (the input view's is the reconstruction).
         depth_z: float32 [V, H, W] rendered planar depth, world units.
@@ -309,11 +313,78 @@ class Prediction:
     labels: torch.Tensor
 
 
-def predict_scene(model: Any, dataset: Any, index: int, input_view: int = 0) -> Prediction:
-    """Render every view of scene ``index`` from ``input_view`` with ``model``."""
+class _InputViewOnly:
+    """``dataset`` with one view per scene (``view``), so svorf renders only that view.
+
+    Every per-view tensor of svorf's ``SceneViews`` (leading dim V) is sliced to
+    ``[view : view + 1]``; ``n_views`` is 1. Only what ``svorf.train.predict_scene``
+    reads is offered (``len``, ``[i]``, ``n_views``, ``image_hw``): anything else
+    fails loudly instead of silently seeing every view.
+    """
+
+    def __init__(self, dataset: Any, view: int) -> None:
+        self._dataset = dataset
+        self._view = int(view)
+        self.n_views = 1
+        self.image_hw = dataset.image_hw
+
+    def __len__(self) -> int:
+        return len(self._dataset)
+
+    def __getitem__(self, i: int) -> Any:
+        sv = self._dataset[i]
+        v = self._view
+        return dataclasses.replace(
+            sv,
+            **{
+                f.name: getattr(sv, f.name)[v : v + 1]
+                for f in dataclasses.fields(sv)
+                if isinstance(getattr(sv, f.name), torch.Tensor)
+            },
+        )
+
+
+def predict_scene(
+    model: Any,
+    dataset: Any,
+    index: int,
+    input_view: int = 0,
+    *,
+    slots_scene: int | None = None,
+    input_view_only: bool = False,
+) -> Prediction:
+    """Render the views of scene ``index`` from ``input_view`` with ``model``.
+
+    Args:
+        model: from :func:`load_model`.
+        dataset: from :func:`open_dataset`.
+        index: scene position in ``dataset``.
+        input_view: the view the model encodes.
+        slots_scene: if given, the slots are encoded from this scene's ``input_view``
+            instead and placed in scene ``index``'s input-camera frame (svorf's
+            ``predict_scene(slots_scene=)``): the scene-shuffle control of
+            :func:`benchmark.evaluate.evaluate_model`. ``slots_scene == index`` is the
+            same as None.
+        input_view_only: render only ``input_view``; the returned tensors then have
+            ``V = 1`` (the input view) instead of every view of the scene.
+
+    Returns:
+        The :class:`Prediction` (every view, or only the input view).
+
+    Raises:
+        ValueError: ``index``, ``input_view`` or ``slots_scene`` out of range.
+    """
     st = _svorf_train()
+    n = len(dataset)
+    if slots_scene is not None and not 0 <= int(slots_scene) < n:
+        raise ValueError(f"slots_scene must be a scene position in [0, {n}), got {slots_scene}")
+    if not 0 <= int(input_view) < dataset.n_views:
+        raise ValueError(f"input_view must be in [0, {dataset.n_views}), got {input_view}")
+    kw: dict[str, Any] = {} if slots_scene is None else {"slots_scene": int(slots_scene)}
+    if input_view_only:
+        dataset, input_view = _InputViewOnly(dataset, input_view), 0
     with torch.no_grad():
-        out = st.predict_scene(model, dataset, index, input_view=input_view)
+        out = st.predict_scene(model, dataset, index, input_view=input_view, **kw)
     get = out.get if isinstance(out, dict) else lambda k, d=None: getattr(out, k, d)
     rgb = torch.as_tensor(get("rgb")).detach().float().cpu()
     if rgb.dim() == 4 and rgb.shape[-1] == 3:  # [V, H, W, 3] -> [V, 3, H, W]

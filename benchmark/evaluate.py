@@ -9,6 +9,14 @@ split) and :func:`evaluate_baselines` once per test split; both return
 Protocol (paper 4.1/4.2): view ``input_view`` (0) is the model's input; ARI and
 FG-ARI are scored on it, NV-ARI on the other (novel) views, ARI*/FG-ARI* over all
 views; PSNR / SSIM / LPIPS and depth errors on the novel views.
+
+Scene-shuffle control (not in the paper): a model whose foreground slots tile 3D
+space in a fixed pattern scores a high FG-ARI without looking at the image, since
+CLEVR objects rarely share a tile. So each test scene i is also rendered with the
+slots of scene (i + 1) mod n (encoded from that scene's input view, placed in scene
+i's input-camera frame) and scored on the input view: ``ari_shuffled``,
+``fg_ari_shuffled`` and ``fg_ari_gain = fg_ari - fg_ari_shuffled``. A decomposition
+loses most of its FG-ARI with another scene's slots; a spatial tiling keeps it.
 """
 
 from __future__ import annotations
@@ -24,11 +32,36 @@ import torch
 from torch import Tensor
 
 from benchmark import adapter
-from benchmark.metrics import depth_errors, lpips_or_null, psnr, segmentation_metrics, ssim
+from benchmark.metrics import (
+    ari_score,
+    depth_errors,
+    fg_ari_score,
+    lpips_or_null,
+    psnr,
+    segmentation_metrics,
+    ssim,
+)
 
-__all__ = ["LPIPS_REASON", "EvalResult", "aggregate", "evaluate_baselines", "evaluate_model"]
+__all__ = [
+    "CONTROL_KEYS",
+    "EVAL_VERSION",
+    "LPIPS_REASON",
+    "EvalResult",
+    "aggregate",
+    "evaluate_baselines",
+    "evaluate_model",
+]
+
+#: Bumped when what :func:`evaluate_model` / :func:`evaluate_baselines` compute changes
+#: (part of the evaluation cache key and of the finished-row context, not of the model
+#: key: trained runs stay valid). "2": the scene-shuffle control.
+EVAL_VERSION = "2"
 
 SEG_KEYS = ("ari", "fg_ari", "nv_ari", "nv_fg_ari", "nv_ari_last", "ari_all", "fg_ari_all")
+#: The scene-shuffle control (module docstring), percent like the ARI family.
+CONTROL_KEYS = ("ari_shuffled", "fg_ari_shuffled", "fg_ari_gain")
+#: Why the control is null on a split of one scene (there is no other scene's slots).
+CONTROL_REASON = "needs_two_scenes: the control renders a scene with another test scene's slots"
 IMAGE_KEYS = ("psnr", "ssim", "lpips")
 DEPTH_KEYS = ("depth_abs_rel", "depth_rmse")
 #: Short reason code for LPIPS; the full explanation (paths searched) goes into notes.
@@ -83,7 +116,7 @@ class EvalResult:
         )
 
 
-_PERCENT = set(SEG_KEYS)
+_PERCENT = set(SEG_KEYS) | set(CONTROL_KEYS)
 
 
 def aggregate(
@@ -154,6 +187,31 @@ def _score_scene(
         acc.setdefault("depth_rmse", []).append(float(torch.nanmean(err["rmse"])))
 
 
+def _score_control(
+    labels: Tensor, truth: adapter.SceneTruth, input_view: int, acc: dict[str, list[float]]
+) -> None:
+    """Append the control's scores of one scene to ``acc``.
+
+    Args:
+        labels: int64 [1, H, W] input-view labels rendered with another scene's slots.
+        truth: the scene's ground truth (its input view is scored).
+        input_view: the input view.
+        acc: per-scene lists; ``fg_ari`` of this scene must already be in it.
+    """
+    gt = truth.instances[input_view : input_view + 1]
+    if labels.shape != gt.shape:
+        raise ValueError(
+            f"predict_scene(input_view_only=True) returned labels {tuple(labels.shape)}, "
+            f"expected {tuple(gt.shape)} like the input view's ground truth"
+        )
+    ari_s = float(ari_score(labels, gt)[0])
+    fg_s = float(fg_ari_score(labels, gt)[0])
+    acc.setdefault("ari_shuffled", []).append(ari_s)
+    acc.setdefault("fg_ari_shuffled", []).append(fg_s)
+    # NaN exactly when fg_ari is NaN (no foreground in the input view: same ground truth).
+    acc.setdefault("fg_ari_gain", []).append(acc["fg_ari"][-1] - fg_s)
+
+
 def _scene_indices(dataset: Any, max_scenes: int | None) -> list[int]:
     n = len(dataset)
     return list(range(n if max_scenes is None else min(n, max_scenes)))
@@ -169,6 +227,11 @@ def evaluate_model(
     progress: Callable[[int, int], None] | None = None,
 ) -> EvalResult:
     """Score ``model`` on every scene of ``dataset`` (segmentation, image and depth metrics).
+
+    Besides the metrics of :data:`SEG_KEYS`, :data:`IMAGE_KEYS` and :data:`DEPTH_KEYS`
+    it computes the scene-shuffle control :data:`CONTROL_KEYS` (module docstring): scene
+    ``idx[j]`` rendered (input view only) with the slots of scene ``idx[(j + 1) % n]``,
+    ``n`` the number of scenes scored; null with a reason when ``n < 2``.
 
     Args:
         model: from :func:`benchmark.adapter.load_model`.
@@ -187,6 +250,8 @@ def evaluate_model(
     details: dict[str, str] = {}
     sample = None
     idx = _scene_indices(dataset, max_scenes)
+    if len(idx) < 2:
+        reasons.update(dict.fromkeys(CONTROL_KEYS, CONTROL_REASON))
     for j, i in enumerate(idx):
         truth = adapter.ground_truth(dataset, i)
         pred = adapter.predict_scene(model, dataset, i, input_view=input_view)
@@ -206,6 +271,16 @@ def evaluate_model(
             reasons,
             details,
         )
+        if len(idx) >= 2:
+            ctrl = adapter.predict_scene(
+                model,
+                dataset,
+                i,
+                input_view=input_view,
+                slots_scene=idx[(j + 1) % len(idx)],
+                input_view_only=True,
+            )
+            _score_control(ctrl.labels, truth, input_view, acc)
         if sample is None:
             sample = {
                 "gt_rgb": truth.images.permute(0, 2, 3, 1).numpy(),

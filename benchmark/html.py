@@ -135,7 +135,8 @@ def _verdicts(report: dict[str, Any]) -> str:
     if no and not yes:
         head = (
             f"<div class=warn><b>At scale '{_e(scale)}' no measured model decomposes the scenes</b> "
-            f"(FG-ARI not far above the chance baselines, see below). These numbers test the "
+            f"(FG-ARI not far above the chance baselines or the scene-shuffle control, see "
+            f"below). These numbers test the "
             f"pipeline, not sVORF's accuracy.</div>"
         )
     elif no:
@@ -143,13 +144,19 @@ def _verdicts(report: dict[str, Any]) -> str:
             f"<div class=warn><b>{len(no)} of {len(vs)} measured rows do not decompose</b> at "
             f"scale '{_e(scale)}' (see below).</div>"
         )
+    elif len(yes) < len(vs):
+        head = (
+            f"<div class=warn><b>{len(vs) - len(yes)} of {len(vs)} measured rows could not be "
+            f"judged</b> at scale '{_e(scale)}' (see below).</div>"
+        )
     else:
         head = f"<div class=ok><b>Every measured row decomposes</b> at scale '{_e(scale)}'.</div>"
     out = [
         head,
         (
             "<table><tr><th class=l>table</th><th class=l>model</th><th class=l>dataset</th>"
-            "<th>FG-ARI</th><th>best chance</th><th class=l>decomposes</th><th class=l>verdict</th></tr>"
+            "<th>FG-ARI</th><th>best chance</th><th>other scene's slots</th>"
+            "<th class=l>decomposes</th><th class=l>verdict</th></tr>"
         ),
     ]
     for v in vs:
@@ -157,7 +164,9 @@ def _verdicts(report: dict[str, Any]) -> str:
         out.append(
             f"<tr class={cls}><td class=l>{_e(v.get('table', ''))}</td><td class=l>{_e(v['model'])}</td>"
             f"<td class=l>{_e(v['dataset'])}</td><td>{fmt_value(v.get('fg_ari'), 'fg_ari')}</td>"
-            f"<td>{fmt_value(v.get('chance_fg_ari'), 'fg_ari')}</td><td class=l>{_e(v.get('decomposes'))}</td>"
+            f"<td>{fmt_value(v.get('chance_fg_ari'), 'fg_ari')}</td>"
+            f"<td>{fmt_value(v.get('fg_ari_shuffled'), 'fg_ari')}</td>"
+            f"<td class=l>{_e(v.get('decomposes'))}</td>"
             f"<td class=l>{_e(v['message'])}</td></tr>"
         )
     out.append("</table>")

@@ -12,9 +12,15 @@ Caching and resume (all writes atomic):
   budgeted run counts the time already trained); ``benchmark_run.json`` marks a
   finished one, which any later protocol with the same key reuses.
 - evaluations: ``<out>/evals/<model key>-<test fingerprint>-<eval key>/result.json``
-  (+ ``sample.npz`` for the qualitative figure), shared by protocols.
+  (+ ``sample.npz`` for the qualitative figure), shared by protocols; the eval key
+  includes :data:`benchmark.evaluate.EVAL_VERSION`, so a change in what an evaluation
+  computes recomputes it (from the cached model).
 - rows: ``<out>/<protocol>-<scale>/rows/<row id>.json``; a rerun skips finished rows
-  whose test data and model key are still the ones this run would use.
+  whose test data, model key and evaluation version are still the ones this run would use.
+
+Measured rows with ARI / FG-ARI also carry the scene-shuffle control
+(:data:`benchmark.evaluate.CONTROL_KEYS`), and :func:`verdicts_for` says a row
+decomposes only if its FG-ARI beats both the chance baselines and that control.
 
 ``--datasets`` (``Context.only_datasets``) keeps the measured and paper rows of the
 named test datasets of a table protocol; the report's notes name the ones left out.
@@ -36,7 +42,14 @@ import numpy as np
 
 from benchmark import adapter
 from benchmark.datasets import DatasetInfo, ensure_dataset
-from benchmark.evaluate import BASELINES, EvalResult, evaluate_baselines, evaluate_model
+from benchmark.evaluate import (
+    BASELINES,
+    CONTROL_KEYS,
+    EVAL_VERSION,
+    EvalResult,
+    evaluate_baselines,
+    evaluate_model,
+)
 from benchmark.generator_bridge import DatasetUnavailable
 from benchmark.metrics import lpips_weight_candidates
 from benchmark.paper_numbers import PAPER_TABLES, paper_rows
@@ -51,7 +64,9 @@ __all__ = [
     "ModelJob",
     "ModelRecord",
     "row_id",
+    "row_metrics",
     "run_table_protocol",
+    "verdicts_for",
 ]
 
 #: TrainConfig fields that do not change what is learned (left out of the cache key).
@@ -381,6 +396,7 @@ class Context:
         ekey = stable_hash(
             {
                 "adapter": adapter.ADAPTER_VERSION,
+                "eval": EVAL_VERSION,
                 "input_view": 0,
                 "max_scenes": self.settings.eval_scenes,
                 "lpips": self._lpips_available(),
@@ -555,10 +571,19 @@ def _write_eval(d: Path, res: EvalResult) -> None:
 # ---------------------------------------------------------------------- table protocols
 
 
+def row_metrics(spec: MeasuredRow) -> tuple[str, ...]:
+    """The metrics of a measured row: the declared ones, plus the scene-shuffle control
+    (:data:`CONTROL_KEYS`) when the row has ARI or FG-ARI."""
+    if any(m in spec.metrics for m in ("ari", "fg_ari")):
+        return tuple(dict.fromkeys(spec.metrics + CONTROL_KEYS))
+    return tuple(spec.metrics)
+
+
 def _measured_row(
     spec: MeasuredRow, rec: ModelRecord, test: DatasetInfo, res: EvalResult
 ) -> dict[str, Any]:
-    metrics = {m: res.metrics.get(m) for m in spec.metrics}
+    names = row_metrics(spec)
+    metrics = {m: res.metrics.get(m) for m in names}
     reasons = {m: res.null_reasons.get(m, "not_computed") for m, v in metrics.items() if v is None}
     row = {
         "id": row_id(spec.table, spec.model, spec.dataset, "measured"),
@@ -570,7 +595,7 @@ def _measured_row(
         "metrics": metrics,
         "null_reasons": reasons,
         "n_scenes": res.n_scenes,
-        "nan_counts": {m: res.nan_counts.get(m, 0) for m in spec.metrics if m in res.nan_counts},
+        "nan_counts": {m: res.nan_counts.get(m, 0) for m in names if m in res.nan_counts},
         "run_key": rec.key,
         "train_dataset": rec.train_dataset.name,
         "test_dataset": test.name,
@@ -586,6 +611,7 @@ def _measured_row(
 
 def _unavailable_row(spec: MeasuredRow, why: str) -> dict[str, Any]:
     reason = "dataset_unavailable: " + why[:300]
+    names = row_metrics(spec)
     return {
         "id": row_id(spec.table, spec.model, spec.dataset, "measured"),
         "table": spec.table,
@@ -593,8 +619,8 @@ def _unavailable_row(spec: MeasuredRow, why: str) -> dict[str, Any]:
         "dataset": spec.dataset,
         "variant": spec.job.variant,
         "source": "measured",
-        "metrics": {m: None for m in spec.metrics},
-        "null_reasons": {m: reason for m in spec.metrics},
+        "metrics": {m: None for m in names},
+        "null_reasons": {m: reason for m in names},
         "n_scenes": 0,
         "train_dataset": f"{spec.job.train_preset}/train",
     }
@@ -605,6 +631,7 @@ def _baseline_rows(
 ) -> list[dict[str, Any]]:
     rows = []
     image = {"psnr", "ssim", "lpips"}
+    metrics = tuple(m for m in metrics if m not in CONTROL_KEYS)  # a model's own control
     for name, label in BASELINES.items():
         if name == "median_colour":
             keep = tuple(m for m in metrics if m in image)
@@ -633,7 +660,20 @@ def _baseline_rows(
 
 
 def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[dict[str, Any]]:
-    """Say plainly, per measured row with FG-ARI, whether the model decomposes scenes."""
+    """Say plainly, per measured row with FG-ARI, whether the model decomposes scenes.
+
+    A row decomposes when all of these hold (T = ``settings.decompose_threshold``,
+    M = ``settings.decompose_margin``):
+
+    - FG-ARI >= T and >= the best chance baseline of its table and test set + M;
+    - FG-ARI >= its own scene-shuffle control ``fg_ari_shuffled`` + M (the same model
+      with another scene's slots: a segmentation that ignores the image, such as a
+      fixed spatial tiling, scores about the same with them).
+
+    ``decomposes`` is None when FG-ARI is null, or when the chance rule passes but the
+    control is missing (null or absent from the row), since then it cannot be told.
+    """
+    margin = settings.decompose_margin
     out = []
     for r in rows:
         if r["source"] != "measured" or "fg_ari" not in r["metrics"]:
@@ -670,19 +710,40 @@ def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[di
                 }
             )
             continue
-        ok = fg >= settings.decompose_threshold and (
-            best is None or fg >= best + settings.decompose_margin
-        )
+        shuffled = r["metrics"].get("fg_ari_shuffled")
+        beats_chance = fg >= settings.decompose_threshold and (best is None or fg >= best + margin)
+        beats_control = shuffled is None or fg >= shuffled + margin
         chance_txt = (
             f"best chance baseline {best:.1f}" if best is not None else "no chance baseline"
         )
-        if ok:
-            msg = f"decomposes: FG-ARI {fg:.1f} vs {chance_txt}{paper_txt}."
-        else:
+        failed = []
+        if not beats_chance:
+            failed.append(
+                f"FG-ARI {fg:.1f} vs {chance_txt}{paper_txt} (threshold: FG-ARI >= "
+                f"{settings.decompose_threshold:.0f} and >= chance + {margin:.0f})"
+            )
+        if not beats_control:
+            failed.append(
+                f"segmentation does not depend on the scene: FG-ARI {fg:.1f} vs "
+                f"{shuffled:.1f} with another scene's slots (needs >= +{margin:.0f})"
+            )
+        ok: bool | None
+        if failed:
+            ok = False
+            msg = f"does NOT decompose at scale '{settings.name}': " + "; ".join(failed) + "."
+        elif shuffled is None:
+            ok = None
+            why = r["null_reasons"].get("fg_ari_shuffled", "not in this row")
             msg = (
-                f"does NOT decompose at scale '{settings.name}': FG-ARI {fg:.1f} vs {chance_txt}"
-                f"{paper_txt} (threshold: FG-ARI >= {settings.decompose_threshold:.0f} and "
-                f">= chance + {settings.decompose_margin:.0f})."
+                f"cannot say whether it decomposes: FG-ARI {fg:.1f} vs {chance_txt}{paper_txt} "
+                f"passes the chance rule, but the scene-shuffle control (FG-ARI with another "
+                f"scene's slots) is missing ({why})."
+            )
+        else:
+            ok = True
+            msg = (
+                f"decomposes: FG-ARI {fg:.1f} vs {chance_txt} and {shuffled:.1f} with another "
+                f"scene's slots{paper_txt}."
             )
         out.append(
             {
@@ -692,6 +753,7 @@ def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[di
                 "decomposes": ok,
                 "fg_ari": fg,
                 "chance_fg_ari": best,
+                "fg_ari_shuffled": shuffled,
                 "message": msg,
             }
         )
@@ -749,6 +811,7 @@ def run_table_protocol(
         "source": ctx.data_source,
         "seeds": ctx.seeds,
         "adapter": adapter.ADAPTER_VERSION,
+        "eval": EVAL_VERSION,
         "train_steps": ctx.train_steps,
         "lpips": ctx._lpips_available(),
     }
@@ -856,8 +919,10 @@ def run_table_protocol(
         )
         ctx.notes.insert(
             0,
-            f"{head} (criterion: FG-ARI >= {ctx.settings.decompose_threshold:.0f} and >= the best "
-            f"chance baseline on the same test set + {ctx.settings.decompose_margin:.0f}; see verdicts).",
+            f"{head} (criterion: FG-ARI >= {ctx.settings.decompose_threshold:.0f}, >= the best "
+            f"chance baseline on the same test set + {ctx.settings.decompose_margin:.0f}, and >= "
+            f"the model's own FG-ARI with another scene's slots (fg_ari_shuffled) + "
+            f"{ctx.settings.decompose_margin:.0f}; see verdicts).",
         )
     lp = [r for r in rows if r["null_reasons"].get("lpips") == "lpips_unavailable"]
     if lp:

@@ -42,8 +42,9 @@ class ScaleSettings:
         train_steps: training steps (None = ``svorf.train.train_config(scale)``'s).
         speed_steps: timed training steps of the ``speed`` protocol (after warm-up).
         speed_warmup: untimed warm-up steps of the ``speed`` protocol.
-        decompose_threshold: FG-ARI (percent) a model must reach, and exceed the best
-            chance baseline by ``decompose_margin``, to be said to decompose.
+        decompose_threshold: FG-ARI (percent) a model must reach, and exceed both the best
+            chance baseline and its own scene-shuffle control (``fg_ari_shuffled``) by
+            ``decompose_margin``, to be said to decompose.
     """
 
     name: str

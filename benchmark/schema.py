@@ -26,6 +26,7 @@ Report layout (``schema_version`` ``REPORT_SCHEMA_VERSION``)::
                 "source": "paper|measured|baseline",
                 "metrics": {name: number|null}, "null_reasons": {name: str}, ...}],
       "verdicts": [{"dataset", "model", "decomposes": bool|null, "message"}],
+                                              # + "fg_ari", "chance_fg_ari", "fg_ari_shuffled"
       "notes": [str], "figures": [str], "units": {metric: str}
     }
 
@@ -72,6 +73,10 @@ METRIC_UNITS: dict[str, str] = {
     "nv_ari_last": "percent",
     "ari_all": "percent",
     "fg_ari_all": "percent",
+    # scene-shuffle control: the input view rendered with another test scene's slots
+    "ari_shuffled": "percent (input-view ARI with the slots of another test scene)",
+    "fg_ari_shuffled": "percent (input-view FG-ARI with the slots of another test scene)",
+    "fg_ari_gain": "percentage points (fg_ari - fg_ari_shuffled)",
     "psnr": "dB",
     "ssim": "unitless [0,1]",
     "lpips": "unitless (lower is better)",

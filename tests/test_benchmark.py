@@ -279,12 +279,13 @@ def test_baselines_and_perfect_prediction(tmp_path, monkeypatch):
     if res["median_colour"].metrics["lpips"] is None:
         assert res["median_colour"].null_reasons["lpips"] == "lpips_unavailable"
 
-    def oracle(model, dataset, index, input_view=0):
+    def oracle(model, dataset, index, input_view=0, *, slots_scene=None, input_view_only=False):
         gt = adapter.ground_truth(dataset, index)
+        keep = slice(input_view, input_view + 1) if input_view_only else slice(None)
         return adapter.Prediction(
-            rgb=(gt.images * 0.98).clamp(0, 1),
-            depth_z=gt.depth_z.nan_to_num(posinf=30.0),
-            labels=gt.instances * 3 + 1,
+            rgb=(gt.images * 0.98).clamp(0, 1)[keep],
+            depth_z=gt.depth_z.nan_to_num(posinf=30.0)[keep],
+            labels=(gt.instances * 3 + 1)[keep],
         )
 
     monkeypatch.setattr(adapter, "predict_scene", oracle)
@@ -309,12 +310,20 @@ def test_tiny_protocol_end_to_end_writes_json_figures_html(e2e):
     assert len(paper) == len(PAPER_TABLES["tab:ablation"]["rows"])
     measured = [r for r in report["rows"] if r["source"] == "measured"]
     assert {r["model"] for r in measured} == {"sVORF (ours)", "sVORF (w/o SA)"}
+    control = {"ari_shuffled", "fg_ari_shuffled", "fg_ari_gain"}
     for r in measured:
         assert (
             r["n_scenes"] == 2
             and r["run_key"]
-            and set(r["metrics"]) == {"nv_ari", "fg_ari", "ari", "psnr"}
+            and set(r["metrics"]) == {"nv_ari", "fg_ari", "ari", "psnr"} | control
         )
+        m = r["metrics"]
+        if m["fg_ari"] is not None and m["fg_ari_shuffled"] is not None:
+            assert m["fg_ari_gain"] == pytest.approx(m["fg_ari"] - m["fg_ari_shuffled"])
+        for k in control:  # computed, or null for a stated reason (no foreground)
+            assert m[k] is not None or r["null_reasons"][k]
+    assert not any(control & set(r["metrics"]) for r in report["rows"] if r["source"] != "measured")
+    assert all("fg_ari_shuffled" in v for v in report["verdicts"] if v["decomposes"] is not None)
     assert len(report["models"]) == 2 and all(
         m["model_config"] and m["train_config"] for m in report["models"]
     )
@@ -327,6 +336,7 @@ def test_tiny_protocol_end_to_end_writes_json_figures_html(e2e):
     assert len(report["figures"]) == 2
     page = (folder / "index.html").read_text()
     assert "tab:ablation" in page and "bars.png" in page and "decompose" in page
+    assert "fg_ari_shuffled" in page and "fg_ari_gain" in page
     assert len(list((out / "reports" / "runs").iterdir())) == 2
 
 
