@@ -20,7 +20,12 @@ floor -> background ``ModelConfig.fg_zmin``                      None
 locality box        ``ModelConfig.fg_box``                       None
 bg outside objects  ``ModelConfig.bg_outside_fg``                False
 comp. temperature   ``ModelConfig.comp_temperature``             1.0
+slot locality       ``ModelConfig.slot_locality``                None
 ==================  ===========================================  =========================
+
+``ModelConfig.coord_frame="input_azimuth"`` (the networks see the input camera's azimuth
+frame) is not a recipe lever: it is the default at every scale (uORF's convention); the
+recipe runs compare it with ``"world"`` (``--coord-frame``).
 
 Measurements and the recommended command are in docs/cpu_recipe.md.
 """
