@@ -430,17 +430,21 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
                 n_conv += 1
                 if bar is not None:
                     bar.update(1)
-        if to_render:
+        # Workers are recycled by giving each batch of workers * recycle_after scenes a
+        # fresh pool. Not ProcessPoolExecutor(max_tasks_per_child=...): on Python 3.11 it
+        # deadlocks when a worker retires with tasks still queued (seen here: generation
+        # stopped for good after the first 40 scenes).
+        batch = workers * cfg.recycle_after
+        for start in range(0, len(to_render), batch):
             with cf.ProcessPoolExecutor(
                 max_workers=workers,
                 mp_context=mp.get_context("spawn"),
                 initializer=_worker_init,
                 initargs=(cfg.n_threads(),),
-                max_tasks_per_child=cfg.recycle_after,
             ) as pool:
                 futures = [
                     pool.submit(render_one, preset, split, i, cfg.seed, render, str(out.absolute()))
-                    for i in to_render
+                    for i in to_render[start : start + batch]
                 ]
                 try:
                     for fut in cf.as_completed(futures):

@@ -61,6 +61,13 @@ class ModelConfig:
     """FFN hidden width of the slot decoder. Paper silent; 4 x slot_dim as in DETR."""
     self_attention: bool = True
     """Self-attention among slots (ablation "w/o SA" sets False)."""
+    dec_value_pos: bool = False
+    """Add the image-token positional encoding to the cross-attention *values* too, not only
+    to the keys (DETR's choice, the default). Paper silent. With positions in the values a
+    slot carries where in the image the features it read lie, so quantities predicted from
+    it (the ``slot_locality`` centres) can follow the objects; with keys only, the slot's
+    position can come only from its learned initial encoding (a fixed layout). cpu recipe
+    lever; the paper scale leaves it off."""
     slot_attn_iters: int = 3
     """Slot Attention iterations (Locatello et al. 2020), only for slot_module="slot_attention"."""
 

@@ -83,9 +83,18 @@ class DecoderLayer(nn.Module):
     slots [B, K, D], memory [B, T, C], memory_pos [1 or B, T, C] -> slots [B, K, D].
     """
 
-    def __init__(self, dim: int, heads: int, ffn: int, mem_dim: int, self_attention: bool) -> None:
+    def __init__(
+        self,
+        dim: int,
+        heads: int,
+        ffn: int,
+        mem_dim: int,
+        self_attention: bool,
+        value_pos: bool = False,
+    ) -> None:
         super().__init__()
         self.self_attention = self_attention
+        self.value_pos = value_pos  # ModelConfig.dec_value_pos
         if self_attention:
             self.norm_sa = nn.LayerNorm(dim)
             self.sa = MultiHeadAttention(dim, heads, dim, dim, dim)
@@ -98,7 +107,8 @@ class DecoderLayer(nn.Module):
         if self.self_attention:
             h = self.norm_sa(x)
             x = x + self.sa(h, h, h)
-        x = x + self.ca(self.norm_ca(x), memory + memory_pos, memory)
+        keys = memory + memory_pos
+        x = x + self.ca(self.norm_ca(x), keys, keys if self.value_pos else memory)
         return x + self.ff(self.norm_ff(x))
 
 
@@ -136,7 +146,9 @@ class SlotTransformerDecoder(nn.Module):
         self.init = _SlotInit(cfg.feat_dim, D, cfg.num_slots)
         self.mem_norm = nn.LayerNorm(cfg.feat_dim)
         self.layers = nn.ModuleList(
-            DecoderLayer(D, cfg.dec_heads, cfg.dec_ffn, cfg.feat_dim, cfg.self_attention)
+            DecoderLayer(
+                D, cfg.dec_heads, cfg.dec_ffn, cfg.feat_dim, cfg.self_attention, cfg.dec_value_pos
+            )
             for _ in range(cfg.dec_layers)
         )
         self.out_norm = nn.LayerNorm(D)
@@ -160,6 +172,7 @@ class SlotAttention(nn.Module):
         super().__init__()
         D, C = cfg.slot_dim, cfg.feat_dim
         self.iters = cfg.slot_attn_iters
+        self.value_pos = cfg.dec_value_pos
         self.init = _SlotInit(C, D, cfg.num_slots)
         self.mem_norm = nn.LayerNorm(C)
         self.norm_slots = nn.LayerNorm(D)
@@ -177,7 +190,7 @@ class SlotAttention(nn.Module):
     def forward(self, features: Tensor) -> Tensor:
         memory, pos = _flatten_features(features, self.mem_norm)
         k = self.k(memory + pos)  # [B, T, D]
-        v = self.v(memory)
+        v = self.v(memory + pos if self.value_pos else memory)
         slots = self.init(features)
         B, K, D = slots.shape
         for _ in range(self.iters):

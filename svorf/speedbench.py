@@ -142,8 +142,13 @@ def build_model(scale: str, v: Variant, state: dict | None, seed: int = 0) -> SV
             comp.a_s.bias.mul_(v.sharpen)
     if v.paper_form_composer and comp is not None:
 
-        def paper_form(gx, slots, valid=None):
-            return masked_softmax(comp.logits_reference(gx, slots, valid), valid)
+        def paper_form(gx, slots, valid=None, bias=None):
+            logits = comp.logits_reference(gx, slots, valid)  # [B, P, K]
+            if comp.temperature != 1.0:
+                logits = logits / comp.temperature
+            if bias is not None:  # [B, K, P] (slot locality)
+                logits = logits.float() + bias.transpose(1, 2)
+            return masked_softmax(logits, valid)
 
         comp.forward = paper_form  # type: ignore[method-assign]
     return model.train()

@@ -177,6 +177,20 @@ def test_process_pool_and_shards_match_in_process_run(runs, tmp_path):
             assert a.rgb(sc, 2).read_bytes() == b.rgb(sc, 2).read_bytes()
 
 
+@pytest.mark.timeout(300)
+def test_worker_recycling_finishes_every_scene(runs, tmp_path):
+    """Workers retire after ``recycle_after`` scenes and the run still finishes (Python
+    3.11's ProcessPoolExecutor(max_tasks_per_child=...) hung here after the first batch)."""
+    from scenefmt import SplitLayout
+
+    out = tmp_path / "recycled"
+    s = _gen(out, n=3, workers=2, recycle_after=1)
+    assert s.scenes_this_run == 3 and s.complete
+    a, b = SplitLayout(runs[0]), SplitLayout(out)
+    for sc in range(2):  # same bytes as the in-process run
+        assert a.scene_json(sc).read_bytes() == b.scene_json(sc).read_bytes()
+
+
 def test_room_chair_renders_and_verifies(tmp_path):
     from generators.raycast import cast_view
     from generators.spec import SceneSpec

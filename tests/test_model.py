@@ -565,3 +565,22 @@ def test_slot_locality_confines_each_foreground_slot_near_its_centre():
     torch.testing.assert_close(q.m, m0g / m0g.sum(-1, keepdim=True), rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError, match="slot_locality"):
         model_config("smoke", slot_locality=0.0)
+
+
+@pytest.mark.parametrize("module", [SlotTransformerDecoder, SlotAttention])
+def test_dec_value_pos_puts_token_positions_into_the_slots(module):
+    """dec_value_pos: cross-attention values carry the tokens' positional encoding. With a
+    spatially uniform feature map every token has the same content, so without positions in
+    the values the slots cannot depend on where attention goes; with them they do."""
+    cfg = model_config("smoke")
+    torch.manual_seed(0)
+    plain = module(cfg)
+    with_pos = module(cfg.replace(dec_value_pos=True))
+    with_pos.load_state_dict(plain.state_dict())  # same weights: only the values differ
+    flat = torch.ones(1, cfg.feat_dim, 4, 4)
+    # Content-free values: the slots equal those of a map with the same mean feature.
+    torch.testing.assert_close(plain(flat), plain(flat.mean((2, 3), keepdim=True).expand_as(flat)))
+    out = with_pos(flat)
+    assert not torch.allclose(out, plain(flat), atol=1e-4)
+    assert torch.isfinite(out).all()
+    assert ModelConfig.from_dict({}).dec_value_pos is False  # old configs load unchanged

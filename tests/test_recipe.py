@@ -37,6 +37,7 @@ def split(tmp_path_factory):
 def test_paper_scale_has_the_levers_off():
     m = model_config("paper")
     assert m.fg_zmin is None and m.fg_box is None and m.comp_temperature == 1.0
+    assert m.slot_locality is None and not m.bg_outside_fg
     t = train_config("paper")
     assert t.nvs_warmup == 0 and t.ray_sampling == "uniform"
     assert ModelConfig().comp_temperature == 1.0 and TrainConfig().nvs_warmup == 0
@@ -45,7 +46,13 @@ def test_paper_scale_has_the_levers_off():
     assert mr.fg_zmin == RECIPE_LEVERS["fg_zmin"] and tr.nvs_warmup == RECIPE_LEVERS["nvs_warmup"]
     assert tr.ray_sampling == "object_heavy" and mr.image_size == 64
     assert mr.bg_outside_fg and mr.fg_box == 3.75 and tr.warmup == 100
-    off = {"fg_zmin": None, "fg_box": None, "bg_outside_fg": False, "nvs_warmup": 0}
+    off = {
+        "fg_zmin": None,
+        "fg_box": None,
+        "bg_outside_fg": False,
+        "nvs_warmup": 0,
+        "slot_locality": None,
+    }
     mr2, tr2 = recipe_configs(levers=off, lr=1e-3)
     assert mr2.fg_zmin is None and tr2.nvs_warmup == 0 and tr2.lr == 1e-3
     assert mr2 == model_config("cpu")
