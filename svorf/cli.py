@@ -8,6 +8,13 @@ Usage::
     svorf render RUN --data DIR --scene I [--out DIR] [--input-view V] [--chunk N]
     svorf info --scale paper [--preset clevr567] [--image-size N]
 
+    torchrun --nproc_per_node N -m svorf.cli train ...   (data parallel, see below)
+
+``svorf train`` under ``torchrun`` (``WORLD_SIZE`` > 1 in the environment) initialises
+the process group (NCCL on CUDA, gloo on CPU) and trains data-parallel: the global batch
+stays the scale's ``batch_scenes`` (it must be divisible by the number of ranks), rank 0
+writes the run folder and prints; see ``svorf.distributed`` and ``docs/scaleout.md``.
+
 Bad input (unknown preset or scale, a data folder that is not a split or does not fit
 the preset or scale, a corrupt checkpoint) prints one line ``svorf: error: ...`` and
 exits with status 2; a diverged training run exits with status 1.
@@ -20,6 +27,12 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from svorf.config import ModelConfig
+    from svorf.distributed import DistContext
+    from svorf.train import TrainConfig
 
 __all__ = ["main"]
 
@@ -125,8 +138,9 @@ def _set_threads(n: int) -> None:
 
 
 def _cmd_train(a: argparse.Namespace) -> int:
+    from svorf import distributed
     from svorf.model import SVORF
-    from svorf.train import run_configs, train
+    from svorf.train import run_configs
 
     if a.threads is not None:
         if a.threads < 1:
@@ -141,17 +155,39 @@ def _cmd_train(a: argparse.Namespace) -> int:
     _check_data(a.data, a.preset, a.scale, mcfg.image_size)
     if a.max_scenes is not None and a.max_scenes < 1:
         raise _UsageError(f"--max-scenes must be >= 1, got {a.max_scenes}")
+    world = distributed.env_world_size()
+    if world > 1:  # before any process group exists: every rank fails alike, at once
+        distributed.local_batch(tcfg.batch_scenes, world)
+    ctx = distributed.init_from_env(tcfg.device)
+    try:
+        return _train_ranked(a, mcfg, tcfg, SVORF(mcfg).count_parameters(), ctx)
+    finally:
+        distributed.shutdown()
+
+
+def _train_ranked(
+    a: argparse.Namespace,
+    mcfg: ModelConfig,
+    tcfg: TrainConfig,
+    n: int,
+    ctx: DistContext | None,
+) -> int:
+    """The training part of ``svorf train`` (every rank under torchrun; rank 0 prints)."""
+    from svorf.train import train
+
+    main = ctx is None or ctx.is_main
     if a.resume:  # a corrupt checkpoint is reported before any data is loaded
         from svorf.train import CHECKPOINT_NAME, _read_checkpoint
 
         if (Path(a.out) / CHECKPOINT_NAME).exists():
             _read_checkpoint(Path(a.out) / CHECKPOINT_NAME)
-    n = SVORF(mcfg).count_parameters()
-    print(
-        f"svorf train: scale {a.scale}, preset {a.preset}, K={mcfg.num_slots}, "
-        f"image {mcfg.image_size}, {n:,} parameters, {tcfg.steps} steps",
-        flush=True,
-    )
+    if main:
+        ranks = "" if ctx is None else f", {ctx.world_size} ranks ({ctx.backend})"
+        print(
+            f"svorf train: scale {a.scale}, preset {a.preset}, K={mcfg.num_slots}, "
+            f"image {mcfg.image_size}, {n:,} parameters, {tcfg.steps} steps{ranks}",
+            flush=True,
+        )
     summary = train(
         a.data,
         a.out,
@@ -162,7 +198,8 @@ def _cmd_train(a: argparse.Namespace) -> int:
         max_scenes=a.max_scenes,
         progress=not a.no_progress,
     )
-    print(json.dumps(summary, indent=2))
+    if main:
+        print(json.dumps(summary, indent=2))
     return 0
 
 

@@ -19,6 +19,12 @@ own randomness (stratified sampling jitter, the packed-11 slot mask) uses the gl
 torch RNG. All of these states are checkpointed, so ``resume=True`` continues the
 uninterrupted run step for step (bit-identical on the same machine and device).
 
+Data parallel: under ``torchrun`` (a process group initialised by ``svorf.cli`` through
+``svorf.distributed.init_from_env``) :func:`train` splits every step's global batch of
+``batch_scenes`` scenes over the ranks and averages the gradients; rank 0 writes the run
+folder. The result matches a single-process run with the same configs up to float
+summation order (see ``svorf.distributed`` for how the random draws are kept identical).
+
 Nothing here imports ``benchmark`` or ``generators`` (DESIGN.md section 2): held-out
 metrics such as ARI are plugged in by the caller through ``eval_fn``.
 """
@@ -35,6 +41,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,8 +50,9 @@ import torch
 from torch import Tensor
 
 from scenefmt import atomic_write_bytes, atomic_write_json
+from svorf import distributed
 from svorf.config import ModelConfig, model_config
-from svorf.data import RAY_SAMPLING, MultiViewDataset, RaySampler, dataset_fingerprint
+from svorf.data import RAY_SAMPLING, MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
 
 __all__ = [
@@ -470,19 +478,33 @@ def default_eval(model: SVORF, dataset: MultiViewDataset, max_scenes: int = 4) -
 # --------------------------------------------------------------------------- training
 
 
-def _rng_state(gen: torch.Generator) -> dict[str, Any]:
-    return {
+def _rng_state(gen: torch.Generator, device: torch.device | None = None) -> dict[str, Any]:
+    state = {
         "torch": torch.get_rng_state(),
         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
         "data": gen.get_state(),
     }
+    if device is not None and device.type == "cuda":
+        # The generator of the device that trained: under torchrun rank r trains on
+        # cuda:r, and every rank restores this state into its own device on resume.
+        state["cuda_device"] = torch.cuda.get_rng_state(device)
+    return state
 
 
-def _set_rng_state(state: dict[str, Any], gen: torch.Generator) -> None:
+def _set_rng_state(
+    state: dict[str, Any], gen: torch.Generator, device: torch.device | None = None
+) -> None:
     torch.set_rng_state(state["torch"])
     if state.get("cuda") and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
+    if device is not None and device.type == "cuda" and state.get("cuda_device") is not None:
+        torch.cuda.set_rng_state(state["cuda_device"], device)
     gen.set_state(state["data"])
+
+
+def _batch_rows(batch: RayBatch, lo: int, hi: int) -> RayBatch:
+    """Scenes ``[lo, hi)`` of a batch (this rank's share of the global batch)."""
+    return RayBatch(**{k: getattr(batch, k)[lo:hi] for k in batch.__dataclass_fields__})
 
 
 def _truncate_jsonl(path: Path, max_step: int) -> None:
@@ -549,7 +571,7 @@ def train(
             :func:`default_eval` (PSNR, depth error). Results go to ``eval.jsonl`` with
             the step and the training wall time.
         max_scenes: load only the first scenes of ``data_dir`` (quick runs).
-        progress: show a tqdm bar (loss, steps/s) on stderr.
+        progress: show a tqdm bar (loss, steps/s) on stderr (rank 0 only under torchrun).
         max_wall_s: stop (with a checkpoint) once the run's training wall time, summed
             over resumed calls, reaches this many seconds, even before ``train_cfg.steps``
             (time-budgeted runs; ``resume=True`` continues them).
@@ -559,9 +581,15 @@ def train(
         ``train_wall_s`` (all calls), ``s_per_step``, ``peak_rss_mb``, ``params``,
         ``device``, ``checkpoint``, ``log``, ``dataset_fingerprint``.
 
+    Under ``torchrun`` (an initialised process group of W > 1 ranks) every rank calls
+    this with the same arguments: each trains on ``batch_scenes / W`` scenes of every
+    step's global batch, gradients are averaged, and only rank 0 writes ``out_dir`` and
+    evaluates; all ranks return the same summary.
+
     Raises:
         TrainingDiverged: a NaN/Inf loss or gradient (names the step; the checkpoint on
             disk stays the last good one).
+        ValueError: under torchrun, ``batch_scenes`` not divisible by the world size.
         CheckpointError: resuming from a corrupt checkpoint or a mismatching run.
         svorf.data.DatasetError: an invalid data folder.
     """
@@ -573,9 +601,16 @@ def train(
             f"(--resume) or choose another output folder"
         )
     device = resolve_device(train_cfg.device)
+    dctx = distributed.current()
+    main = dctx is None or dctx.is_main  # the process that writes files and logs
+    lo, hi = 0, train_cfg.batch_scenes  # this process's rows of each global batch
+    if dctx is not None:
+        b = distributed.local_batch(train_cfg.batch_scenes, dctx.world_size)
+        lo, hi = dctx.rank * b, (dctx.rank + 1) * b
+        device = distributed.local_device(dctx, device)
     dataset = MultiViewDataset(data_dir, image_size=model_cfg.image_size, max_scenes=max_scenes)
     eval_ds = None
-    if eval_data is not None and train_cfg.eval_every:
+    if main and eval_data is not None and train_cfg.eval_every:
         eval_ds = MultiViewDataset(
             eval_data, image_size=model_cfg.image_size, max_scenes=train_cfg.eval_scenes
         )
@@ -598,6 +633,8 @@ def train(
     torch.manual_seed(train_cfg.seed)
     gen = torch.Generator().manual_seed(train_cfg.seed)
     model = SVORF(model_cfg).to(device)
+    if dctx is not None:
+        model = distributed.prepare_model(model, device, dctx)
     opt = torch.optim.Adam(model.parameters(), lr=lr_at(train_cfg, 0), betas=train_cfg.betas)
     start, wall_offset, resumed_loss = 0, 0.0, math.nan
     out.mkdir(parents=True, exist_ok=True)
@@ -631,26 +668,30 @@ def train(
         try:
             model.load_state_dict(ckpt["model"])
             opt.load_state_dict(ckpt["optimizer"])
-            _set_rng_state(ckpt["rng"], gen)
+            _set_rng_state(ckpt["rng"], gen, device)
         except (RuntimeError, ValueError, KeyError, TypeError) as e:
             raise CheckpointError(
                 f"{ckpt_path}: cannot restore the checkpoint ({_first_line(e)[:160]})"
             ) from e
         start, wall_offset = int(ckpt["step"]), float(ckpt.get("wall_s", 0.0))
         resumed_loss = float(ckpt.get("loss", math.nan))
-        _truncate_jsonl(log_path, start)
-        _truncate_jsonl(eval_path, start)
-    else:
+        if main:
+            _truncate_jsonl(log_path, start)
+            _truncate_jsonl(eval_path, start)
+    elif main:
         for p in (log_path, eval_path):
             p.unlink(missing_ok=True)
-    atomic_write_json(
-        out / "config.json",
-        {
-            "model": model_cfg.to_dict(),
-            "train": train_cfg.to_dict(),
-            "dataset": data_info,
-        },
-    )
+    if dctx is not None:  # identical already (same seed / checkpoint); made certain here
+        distributed.broadcast_module(model)
+    if main:
+        atomic_write_json(
+            out / "config.json",
+            {
+                "model": model_cfg.to_dict(),
+                "train": train_cfg.to_dict(),
+                "dataset": data_info,
+            },
+        )
 
     def save(step: int, wall: float) -> None:
         _atomic_torch_save(
@@ -659,7 +700,7 @@ def train(
                 "step": step,
                 "model": model.state_dict(),
                 "optimizer": opt.state_dict(),
-                "rng": _rng_state(gen),
+                "rng": _rng_state(gen, device),
                 "model_config": model_cfg.to_dict(),
                 "train_config": train_cfg.to_dict(),
                 "dataset": data_info,
@@ -693,7 +734,7 @@ def train(
         return f"{ckpt_path} keeps the last good state (step {step})"
 
     bar = None
-    if progress:
+    if progress and main:
         from tqdm import tqdm
 
         bar = tqdm(
@@ -708,31 +749,48 @@ def train(
     paused = 0.0  # seconds spent in eval / checkpoint writing, kept out of wall_s
     last_loss = resumed_loss
     last_log_t, last_log_step = t0, start
+    params = [p for p in model.parameters() if p.requires_grad]
+    rand_ctx = (
+        (lambda: nullcontext())
+        if dctx is None
+        else (lambda: distributed.GlobalBatchRandom(dctx.rank, dctx.world_size, hi - lo))
+    )
     try:
         for step in range(start, train_cfg.steps):
             lr = lr_at(train_cfg, step)
             for group in opt.param_groups:
                 group["lr"] = lr
             smp = sampler_warm if step < train_cfg.nvs_warmup else sampler
-            batch = smp.sample(smp.sample_scenes(train_cfg.batch_scenes, gen), gen).to(device)
-            # In train mode the model draws the packed-11 slot mask itself (global RNG).
-            out_r = model(
-                batch.images,
-                batch.rays_o,
-                batch.rays_d,
-                perturb=True,
-                input_c2w=batch.input_c2w,
-            )
-            loss, parts = model.loss(out_r, batch.target_rgb)
+            # Under torchrun every rank draws the whole global batch (the same draws as
+            # one process) and keeps its rows.
+            batch = smp.sample(smp.sample_scenes(train_cfg.batch_scenes, gen), gen)
+            if dctx is not None:
+                batch = _batch_rows(batch, lo, hi)
+            batch = batch.to(device)
+            with rand_ctx():
+                # In train mode the model draws the packed-11 slot mask itself (global RNG).
+                out_r = model(
+                    batch.images,
+                    batch.rays_o,
+                    batch.rays_d,
+                    perturb=True,
+                    input_c2w=batch.input_c2w,
+                )
+                loss, parts = model.loss(out_r, batch.target_rgb)
             done = step + 1
+            if dctx is not None:
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                loss, parts = _average_step(params, loss, parts, dctx.world_size)
             if not torch.isfinite(loss):
                 shown = ", ".join(f"{k}={float(v):.4g}" for k, v in parts.items())
                 raise TrainingDiverged(
                     f"non-finite loss {float(loss.detach())} at step {done} ({shown}); "
                     f"{_kept(saved)}"
                 )
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
+            if dctx is None:
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
             gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf"))
             if not torch.isfinite(gnorm):
                 raise TrainingDiverged(
@@ -746,8 +804,10 @@ def train(
                 bar.set_postfix(loss=f"{last_loss:.5f}")
             now = time.perf_counter()
             wall = wall_offset + now - t0 - paused
+            if dctx is not None and max_wall_s is not None:  # all ranks stop at one step
+                wall = distributed.all_reduce_max(wall, device)
             out_of_time = max_wall_s is not None and wall >= max_wall_s
-            if done % train_cfg.log_every == 0 or done == train_cfg.steps or out_of_time:
+            if main and (done % train_cfg.log_every == 0 or done == train_cfg.steps or out_of_time):
                 sps = (done - last_log_step) / max(now - last_log_t, 1e-9)
                 _append_jsonl(
                     log_path,
@@ -766,7 +826,8 @@ def train(
             if eval_ds is not None and done % train_cfg.eval_every == 0:
                 run_eval(done, wall)
             if done % train_cfg.ckpt_every == 0 or done == train_cfg.steps or out_of_time:
-                save(done, wall)
+                if main:
+                    save(done, wall)
                 saved = done
             paused += time.perf_counter() - tp
             if out_of_time:
@@ -791,5 +852,26 @@ def train(
         "log": str(log_path),
         "dataset_fingerprint": dataset.fingerprint,
     }
-    atomic_write_json(out / "summary.json", summary)
+    if dctx is not None:
+        summary["world_size"] = dctx.world_size
+    if main:
+        atomic_write_json(out / "summary.json", summary)
     return summary
+
+
+def _average_step(
+    params: list[torch.nn.Parameter], loss: Tensor, parts: dict[str, Tensor], world_size: int
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """All-reduce one step: mean gradients, mean loss and loss parts over the ranks.
+
+    The per-rank losses are means over equal per-rank batches, so the mean gradient is
+    the gradient of the global-batch loss. A NaN on any rank makes the mean NaN, so all
+    ranks see the same loss and stop at the same step.
+    """
+    names = list(parts)
+    stats = torch.stack([loss.detach().float(), *(parts[k].detach().float() for k in names)])
+    mean = distributed.average_gradients(params, stats, world_size)
+    out = {k: mean[i + 1] for i, k in enumerate(names)}
+    if "psnr" in out and "mse" in out:  # PSNR of the global MSE, not a mean of PSNRs
+        out["psnr"] = -10.0 * torch.log10(out["mse"].clamp_min(1e-10))
+    return mean[0], out
