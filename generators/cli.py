@@ -3,12 +3,18 @@
     generate --preset clevr567 [--split train|test] [--n N] [--out DIR] [--workers W]
              [--resolution 128] [--seed S] [--samples 8] [--denoise/--no-denoise]
              [--bounces 4] [--threads T] [--shard i/n] [--camera-radius R]
-             [--source DIR] [--no-progress]
+             [--source DIR] [--backend local|ray [--address ADDR]] [--no-progress]
     generate verify DIR
     generate preview --preset NAME [--n 4] [--out DIR]
 
+``--backend ray`` renders the scenes as tasks on Ray actors (one Blender session per
+actor) on the cluster at ``--address`` (default ``RAY_ADDRESS``, else a local Ray
+instance); ``--shard i/n`` splits a split over plain job arrays. Either way the files
+are the same bytes as a local run, and rerunning resumes. See ``docs/scaleout.md``.
+
 Bad input (unknown preset, --n <= 0, unwritable --out, --resolution < 16, missing
-bpy) prints one line ``generate: error: ...`` and exits with status 2, writing nothing.
+bpy or ray) prints one line ``generate: error: ...`` and exits with status 2, writing
+nothing.
 """
 
 from __future__ import annotations
@@ -91,6 +97,19 @@ def _gen_parser() -> _Parser:
     )
     ap.add_argument("--source", type=Path, default=None,
                     help="derived presets (clevr567-gray): folder of the source renders to convert")  # fmt: skip
+    ap.add_argument(
+        "--backend",
+        choices=("local", "ray"),
+        default="local",
+        help="local: process pool here (default); ray: Ray actors on a cluster "
+        "(pip install 'svorf-toolkit[ray]')",
+    )
+    ap.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster address for --backend ray (auto, host:6379, ray://host:10001; "
+        "default RAY_ADDRESS, else a local Ray instance)",
+    )
     ap.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     return ap
 
@@ -98,6 +117,7 @@ def _gen_parser() -> _Parser:
 def _generate(argv: list[str]) -> int:
     from generators.blender_backend import BpyMissingError
     from generators.pipeline import GenerateConfig, generate_dataset
+    from generators.ray_backend import RayMissingError
 
     a = _gen_parser().parse_args(argv)
     try:
@@ -105,10 +125,11 @@ def _generate(argv: list[str]) -> int:
             preset=a.preset, split=a.split, n=a.n, out=a.out, resolution=a.resolution,
             seed=a.seed, samples=a.samples, denoise=a.denoise, bounces=a.bounces,
             workers=a.workers, threads=a.threads, shard=a.shard, progress=a.progress,
-            source=a.source, camera_radius=a.camera_radius,
+            source=a.source, camera_radius=a.camera_radius, backend=a.backend,
+            address=a.address,
         )  # fmt: skip
         summary = generate_dataset(cfg)
-    except (ValueError, BpyMissingError) as e:
+    except (ValueError, BpyMissingError, RayMissingError) as e:
         return _fail(str(e).splitlines()[0])
     except KeyboardInterrupt:
         print("generate: interrupted; rerun the same command to resume", file=sys.stderr)

@@ -10,6 +10,7 @@ Data flow::
          -> derived presets: convert complete source scenes (no Cycles)
          -> worker processes (spawn; one BlenderSession each, recycled every
             ``recycle_after`` scenes): make_scene -> render_scene -> write_scene
+            (``backend="ray"``: the same task on Ray actors, ``generators.ray_backend``)
       -> manifest.json ("status": "complete" once every scene of the split exists)
       -> GenerateSummary
 
@@ -35,6 +36,9 @@ from generators.spec import RenderSettings
 from generators.writer import manifest
 
 MAX_SCENES = 10_000  # sc%04d file names
+
+#: Where scenes are rendered: a local process pool or Ray actors (``generators.ray_backend``).
+BACKENDS = ("local", "ray")
 
 #: Manifest keys that identify a dataset: a rerun into the same folder must match them.
 IDENTITY_KEYS = ("preset", "split", "seed", "resolution", "n_views", "render", "preset_config")
@@ -74,6 +78,11 @@ class GenerateConfig:
             small CPU-scale datasets); part of the dataset identity.
         recycle_after: scenes per worker process before it is replaced (Blender
             leaks a little memory per scene).
+        backend: ``local`` (a process pool on this machine) or ``ray`` (Ray actors on
+            a cluster; ``workers``/``threads`` then default to the cluster's CPUs, see
+            ``generators.ray_backend.plan``). The bytes written do not depend on it.
+        address: Ray cluster address (``auto``, ``host:6379``, ``ray://host:10001``);
+            default the ``RAY_ADDRESS`` environment variable, else a local instance.
     """
 
     preset: str
@@ -92,6 +101,8 @@ class GenerateConfig:
     source: str | os.PathLike | None = None
     camera_radius: float | None = None
     recycle_after: int = 40
+    backend: str = "local"
+    address: str | None = None
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -125,6 +136,12 @@ class GenerateConfig:
             raise ValueError(f"recycle_after must be >= 1, got {self.recycle_after}")
         if self.camera_radius is not None:
             p.with_camera_radius(self.camera_radius)  # validates
+        if self.backend not in BACKENDS:
+            raise ValueError(
+                f"--backend must be one of {', '.join(BACKENDS)}, got {self.backend!r}"
+            )
+        if self.address is not None and self.backend != "ray":
+            raise ValueError("--address is a Ray cluster address; pass it with --backend ray")
 
     # ---------------------------------------------------------------- resolved values
 
@@ -399,7 +416,11 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
             convert = [i for i in todo if scenefmt.is_scene_complete(src, i)]
     convert_set = set(convert)
     to_render = [i for i in todo if i not in convert_set]
-    if to_render:
+    if to_render and cfg.backend == "ray":
+        from generators.ray_backend import import_ray
+
+        import_ray()  # missing ray: one-line error before anything is written
+    elif to_render:  # (Ray workers may run on other nodes: they check bpy themselves)
         from generators import blender_backend
 
         if not blender_backend.bpy_available():
@@ -418,6 +439,7 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
 
         bar = tqdm(total=len(todo), unit="scene", desc=f"{preset.name}/{split}", dynamic_ncols=True)
     workers = min(cfg.n_workers(), max(1, len(to_render)))
+    threads = cfg.n_threads()
     render_s = 0.0
     n_conv = n_rend = 0
     try:
@@ -430,6 +452,22 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
                 n_conv += 1
                 if bar is not None:
                     bar.update(1)
+        if cfg.backend == "ray" and to_render:
+            from generators.ray_backend import render_scenes
+
+            def done(_res: dict[str, float]) -> None:
+                if bar is not None:
+                    bar.update(1)
+
+            used, results = render_scenes(
+                preset, split, to_render, cfg.seed, render, out,
+                workers=cfg.workers, threads=cfg.threads, recycle_after=cfg.recycle_after,
+                address=cfg.address, on_done=done,
+            )  # fmt: skip
+            render_s += sum(r["render_s"] for r in results)
+            n_rend += len(results)
+            workers, threads = used.workers, used.threads
+            to_render = []  # rendered: the local pool below has nothing left to do
         # Workers are recycled by giving each batch of workers * recycle_after scenes a
         # fresh pool. Not ProcessPoolExecutor(max_tasks_per_child=...): on Python 3.11 it
         # deadlocks when a worker retires with tasks still queued (seen here: generation
@@ -477,11 +515,18 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
         views_rendered=n_rend * preset.camera.n_views,
         wall_s=time.perf_counter() - t0,
         render_s=render_s,
-        workers=workers if to_render else 0,
-        threads=cfg.n_threads(),
+        workers=workers if n_rend else 0,
+        threads=threads,
         complete=complete,
         n_views=preset.camera.n_views,
     )
 
 
-__all__ = ["GenerateConfig", "GenerateSummary", "cpu_cores", "generate_dataset", "render_one"]
+__all__ = [
+    "BACKENDS",
+    "GenerateConfig",
+    "GenerateSummary",
+    "cpu_cores",
+    "generate_dataset",
+    "render_one",
+]
