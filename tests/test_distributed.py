@@ -70,11 +70,15 @@ def test_two_cpu_ranks_match_one_process_and_resume(split, tmp_path):
     assert summary["world_size"] == 2 and summary["steps"] == STEPS
 
     # ... against one process with the same global batch (smoke: batch_scenes = 2).
-    torch.set_num_threads(1)
     mcfg, tcfg = run_configs("smoke", "synthetic", image_size=IMAGE, steps=STEPS, device="cpu")
     assert tcfg.batch_scenes == 2
     single = tmp_path / "single"
-    train(split, single, mcfg, tcfg, progress=False)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the ranks (--threads 1)
+    try:
+        train(split, single, mcfg, tcfg, progress=False)
+    finally:
+        torch.set_num_threads(threads)
 
     a = torch.load(single / "checkpoint.pt", weights_only=True)
     b = torch.load(ddp / "checkpoint.pt", weights_only=True)
@@ -139,24 +143,18 @@ def test_global_batch_random_refuses_draws_it_cannot_match():
         torch.zeros(2).add_(1)  # other ops pass through
 
 
-def test_batch_not_divisible_by_world_size_is_a_one_line_error(split, tmp_path, capsys):
+def test_batch_not_divisible_by_world_size_is_a_one_line_error(
+    split, tmp_path, capsys, monkeypatch
+):
     with pytest.raises(ValueError, match="not divisible by the world size 4"):
         distributed.local_batch(6, 4)
     assert distributed.local_batch(8, 4) == 2
     # torchrun's environment for rank 0 of 4: the check fires before any process group.
-    env = {"WORLD_SIZE": "4", "RANK": "0", "LOCAL_RANK": "0"}
-    old = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    try:
-        argv = ["train", "--data", str(split), "--preset", "synthetic", "--scale", "smoke",
-                "--out", str(tmp_path / "run"), "--image-size", str(IMAGE), "--no-progress"]  # fmt: skip
-        assert main(argv) == 2
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    for k, v in {"WORLD_SIZE": "4", "RANK": "0", "LOCAL_RANK": "0"}.items():
+        monkeypatch.setenv(k, v)
+    argv = ["train", "--data", str(split), "--preset", "synthetic", "--scale", "smoke",
+            "--out", str(tmp_path / "run"), "--image-size", str(IMAGE), "--no-progress"]  # fmt: skip
+    assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("svorf: error:") and len(err.splitlines()) == 1, err
     assert "batch_scenes=2 is not divisible by the world size 4" in err
