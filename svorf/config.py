@@ -21,6 +21,7 @@ EncoderNorm = Literal["batch", "group", "none"]
 DensityAct = Literal["softplus", "relu"]
 Scale = Literal["smoke", "cpu", "paper"]
 CoordFrame = Literal["world", "input_azimuth"]
+SlotCentre = Literal["learned", "attention"]
 
 
 @dataclass(frozen=True)
@@ -206,6 +207,21 @@ class ModelConfig:
     explain objects that lie far apart: decomposition pressure from the first step (the
     object-centric analogue of uORF's locality box). Label-free: the centres are learned
     from the reconstruction loss alone. None = off (paper)."""
+    slot_centre: SlotCentre = "learned"
+    """Where the ``slot_locality`` centres come from. "learned": c_k = e * tanh(Linear(s_k)).
+    "attention": geometry instead of a learned map: each token of the feature map is cast
+    as a ray from the input camera (``input_c2w``, focal ``centre_focal``) to the plane
+    z = ``centre_height`` (its xy clamped to the object region), and c_k is the mean of
+    those ground points weighted by slot k's cross-attention over the tokens (last decoder
+    layer, mean over heads). A slot's 3D centre is then where it looks in the image from the
+    first step on; nothing is learned for it. Label-free (the camera is an input of the
+    method, the floor plane is the same scene prior as ``fg_zmin``). cpu recipe lever."""
+    centre_focal: float = 35.0 / 32.0
+    """Input camera focal length / image width for ``slot_centre="attention"`` (the
+    generator's 35 mm lens on a 32 mm sensor; principal point at the image centre)."""
+    centre_height: float = 0.35
+    """Height (world z) of the plane the attention rays are cut at (CLEVR object centres lie
+    at z = 0.35 or 0.7)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "enc_blocks", tuple(int(b) for b in self.enc_blocks))
@@ -214,6 +230,7 @@ class ModelConfig:
         _check_choice("enc_norm", self.enc_norm, EncoderNorm)
         _check_choice("density_act", self.density_act, DensityAct)
         _check_choice("coord_frame", self.coord_frame, CoordFrame)
+        _check_choice("slot_centre", self.slot_centre, SlotCentre)
         positive = (
             "image_size",
             "enc_width",
@@ -281,6 +298,13 @@ class ModelConfig:
                     "ModelConfig.slot_locality needs per-slot fields; composition='slot_mixer' "
                     "mixes them (use slot_guided or density_weighted)"
                 )
+        if self.slot_centre == "attention" and self.slot_locality is None:
+            raise ValueError(
+                "ModelConfig.slot_centre='attention' places slot_locality centres: set "
+                "slot_locality (a radius) too"
+            )
+        if not self.centre_focal > 0:
+            raise ValueError(f"ModelConfig.centre_focal must be > 0, got {self.centre_focal}")
         if self.last_delta <= 0 or self.sigma_max <= 0:
             raise ValueError("ModelConfig.last_delta and sigma_max must be > 0")
         if self.slot_mask_train != 0 and not 0 < self.slot_mask_train <= self.num_slots - 2:

@@ -20,6 +20,8 @@ Choices where the paper is silent (documented, config fields where they are size
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -65,7 +67,16 @@ class MultiHeadAttention(nn.Module):
             nn.init.xavier_uniform_(lin.weight)
             nn.init.zeros_(lin.bias)
 
-    def forward(self, q: Tensor, k: Tensor, v: Tensor, key_mask: Tensor | None = None) -> Tensor:
+    def forward(
+        self,
+        q: Tensor,
+        k: Tensor,
+        v: Tensor,
+        key_mask: Tensor | None = None,
+        need_weights: bool = False,
+    ) -> Tensor | tuple[Tensor, Tensor]:
+        """Attention output [B, Lq, dim]; with ``need_weights`` also the attention weights
+        averaged over heads, [B, Lq, Lk] (rows sum to 1)."""
         B, Lq, _ = q.shape
         Lk = k.shape[1]
         H = self.heads
@@ -73,8 +84,15 @@ class MultiHeadAttention(nn.Module):
         kh = self.k(k).view(B, Lk, H, -1).transpose(1, 2)
         vh = self.v(v).view(B, Lk, H, -1).transpose(1, 2)
         mask = None if key_mask is None else key_mask[:, None, None, :]
-        out = F.scaled_dot_product_attention(qh, kh, vh, attn_mask=mask)
-        return self.o(out.transpose(1, 2).reshape(B, Lq, -1))
+        if not need_weights:
+            out = F.scaled_dot_product_attention(qh, kh, vh, attn_mask=mask)
+            return self.o(out.transpose(1, 2).reshape(B, Lq, -1))
+        logits = qh @ kh.transpose(-1, -2) / math.sqrt(qh.shape[-1])  # [B, H, Lq, Lk]
+        if mask is not None:
+            logits = logits.masked_fill(~mask, float("-inf"))
+        w = torch.softmax(logits, dim=-1)
+        out = self.o((w @ vh).transpose(1, 2).reshape(B, Lq, -1))
+        return out, w.mean(dim=1)
 
 
 class DecoderLayer(nn.Module):
@@ -103,13 +121,24 @@ class DecoderLayer(nn.Module):
         self.norm_ff = nn.LayerNorm(dim)
         self.ff = nn.Sequential(nn.Linear(dim, ffn), nn.ReLU(inplace=True), nn.Linear(ffn, dim))
 
-    def forward(self, x: Tensor, memory: Tensor, memory_pos: Tensor) -> Tensor:
+    def forward(
+        self, x: Tensor, memory: Tensor, memory_pos: Tensor, need_attn: bool = False
+    ) -> Tensor | tuple[Tensor, Tensor]:
+        """Updated slots [B, K, D]; with ``need_attn`` also the cross-attention weights
+        [B, K, T] (mean over heads)."""
         if self.self_attention:
             h = self.norm_sa(x)
             x = x + self.sa(h, h, h)
         keys = memory + memory_pos
-        x = x + self.ca(self.norm_ca(x), keys, keys if self.value_pos else memory)
-        return x + self.ff(self.norm_ff(x))
+        values = keys if self.value_pos else memory
+        attn = None
+        if need_attn:
+            upd, attn = self.ca(self.norm_ca(x), keys, values, need_weights=True)
+        else:
+            upd = self.ca(self.norm_ca(x), keys, values)
+        x = x + upd
+        x = x + self.ff(self.norm_ff(x))
+        return (x, attn) if need_attn else x
 
 
 class _SlotInit(nn.Module):
@@ -153,12 +182,23 @@ class SlotTransformerDecoder(nn.Module):
         )
         self.out_norm = nn.LayerNorm(D)
 
-    def forward(self, features: Tensor) -> Tensor:
+    def forward(
+        self, features: Tensor, return_attn: bool = False
+    ) -> Tensor | tuple[Tensor, Tensor]:
+        """Slots [B, K, D]; with ``return_attn`` also the last layer's cross-attention over
+        the feature map, [B, K, h, w] (mean over heads, sums to 1 per slot)."""
         memory, pos = _flatten_features(features, self.mem_norm)
         x = self.init(features)
-        for layer in self.layers:
-            x = layer(x, memory, pos)
-        return self.out_norm(x)
+        attn = None
+        for i, layer in enumerate(self.layers):
+            if return_attn and i == len(self.layers) - 1:
+                x, attn = layer(x, memory, pos, need_attn=True)
+            else:
+                x = layer(x, memory, pos)
+        slots = self.out_norm(x)
+        if not return_attn:
+            return slots
+        return slots, attn.reshape(*slots.shape[:2], *features.shape[-2:])
 
 
 class SlotAttention(nn.Module):
@@ -187,7 +227,11 @@ class SlotAttention(nn.Module):
         self.out_norm = nn.LayerNorm(D)
         self.scale = D**-0.5
 
-    def forward(self, features: Tensor) -> Tensor:
+    def forward(
+        self, features: Tensor, return_attn: bool = False
+    ) -> Tensor | tuple[Tensor, Tensor]:
+        """Slots [B, K, D]; with ``return_attn`` also the last iteration's attention,
+        normalised over the tokens, [B, K, h, w]."""
         memory, pos = _flatten_features(features, self.mem_norm)
         k = self.k(memory + pos)  # [B, T, D]
         v = self.v(memory + pos if self.value_pos else memory)
@@ -202,7 +246,10 @@ class SlotAttention(nn.Module):
             updates = torch.einsum("btk,btd->bkd", attn, v)
             slots = self.gru(updates.reshape(B * K, D), prev.reshape(B * K, D)).view(B, K, D)
             slots = slots + self.mlp(self.norm_mlp(slots))
-        return self.out_norm(slots)
+        slots = self.out_norm(slots)
+        if not return_attn:
+            return slots
+        return slots, attn.transpose(1, 2).reshape(B, K, *features.shape[-2:])
 
 
 def build_slot_module(cfg: ModelConfig) -> nn.Module:

@@ -120,6 +120,34 @@ def azimuth_frame(cam_to_world: Tensor) -> Tensor:
     return torch.stack(rows, -2)
 
 
+def token_ground_points(
+    cam_to_world: Tensor, h: int, w: int, focal: float, height: float, extent: float
+) -> Tensor:
+    """World points [B, h*w, 3] where the rays through the centres of an h x w token grid of
+    the input view meet the plane z = ``height`` (row-major over (y, x), as the tokens).
+
+    Pinhole camera, OpenCV axes, principal point at the image centre, focal length
+    ``focal`` x image width. x and y are clamped to [-extent, extent]; a ray that does not
+    descend to the plane is taken to meet it at the far edge of that square.
+
+    Args:
+        cam_to_world: [B, 4, 4].
+    """
+    dev = cam_to_world.device
+    u = (torch.arange(w, device=dev, dtype=torch.float32) + 0.5) / w - 0.5
+    v = (torch.arange(h, device=dev, dtype=torch.float32) + 0.5) / h - 0.5
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    d_cam = torch.stack([uu / focal, vv / focal, torch.ones_like(uu)], -1).reshape(-1, 3)
+    rot, o = cam_to_world[:, :3, :3].float(), cam_to_world[:, :3, 3].float()
+    d = torch.einsum("bij,tj->bti", rot, d_cam)  # [B, T, 3]
+    dz = d[..., 2]
+    t = (height - o[:, None, 2]) / dz.clamp(max=-1e-6)  # rays going up: far away
+    t = torch.where(dz < -1e-6, t, torch.full_like(t, 1e4))
+    p = o[:, None] + t[..., None] * d
+    xy = p[..., :2].clamp(-extent, extent)
+    return torch.cat([xy, torch.full_like(xy[..., :1], height)], -1)
+
+
 class SVORF(nn.Module):
     """The sVORF model (Qi et al., NeurIPS 2023) and its ablation variants (see ModelConfig).
 
@@ -146,17 +174,20 @@ class SVORF(nn.Module):
         if cfg.composition != "density_weighted":
             self.composer = SlotGuidedComposer(cfg, self.fields.in_x)
         self.slot_centre: nn.Linear | None = None  # ModelConfig.slot_locality
-        if cfg.slot_locality is not None:
+        if cfg.slot_locality is not None and cfg.slot_centre == "learned":
             self.slot_centre = nn.Linear(cfg.slot_dim, 3)
 
     # ------------------------------------------------------------------ encoding
-    def encode(self, images: Tensor) -> Tensor:
+    def encode(self, images: Tensor, return_attn: bool = False) -> Tensor | tuple[Tensor, Tensor]:
         """Input view -> slots.
 
         Args:
             images: [B, 3, H, W] in [0, 1]; resized (bilinear, antialiased) to image_size.
+            return_attn: also return each slot's attention over the feature map,
+                [B, K, h, w] (pass it to :meth:`render_rays` as ``slot_attn``; needed with
+                ``slot_centre="attention"``).
         Returns:
-            slots [B, K, D]; slot K-1 is the background.
+            slots [B, K, D]; slot K-1 is the background. With ``return_attn``: (slots, attn).
         """
         if images.dim() != 4 or images.shape[1] != 3:
             raise ValueError(
@@ -169,7 +200,15 @@ class SVORF(nn.Module):
             images = F.interpolate(
                 images, size=(s, s), mode="bilinear", align_corners=False, antialias=True
             )
-        return self.slot_module(self.encoder(images))
+        return self.slot_module(self.encoder(images), return_attn=return_attn)
+
+    def encode_for_render(self, images: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """(slots [B, K, D], the extra keyword arguments :meth:`render_rays` needs for them):
+        ``{"slot_attn": ...}`` with ``slot_centre="attention"``, else ``{}``."""
+        if self.cfg.slot_centre == "attention" and self.cfg.slot_locality is not None:
+            slots, attn = self.encode(images, return_attn=True)
+            return slots, {"slot_attn": attn}
+        return self.encode(images), {}
 
     # ------------------------------------------------------------------ rendering
     def render_rays(
@@ -183,6 +222,7 @@ class SVORF(nn.Module):
         need_aux: bool = True,
         object_transforms: Tensor | None = None,
         input_c2w: Tensor | None = None,
+        slot_attn: Tensor | None = None,
     ) -> RenderOutput:
         """Render rays of B scenes from their slots.
 
@@ -205,6 +245,9 @@ class SVORF(nn.Module):
                 coordinates rotated about z by minus that camera's azimuth
                 (:func:`azimuth_frame`); None = the input camera is at azimuth 0. Ignored
                 with ``coord_frame="world"``.
+            slot_attn: [B, K, h, w] attention of each slot over the input view's feature
+                map (``encode(..., return_attn=True)``); required with
+                ``slot_centre="attention"`` (with ``input_c2w``), ignored otherwise.
         Returns:
             :class:`RenderOutput`.
         """
@@ -221,6 +264,7 @@ class SVORF(nn.Module):
                     f"got {tuple(input_c2w.shape)}"
                 )
             frame = azimuth_frame(input_c2w.reshape(-1, 4, 4).to(slots.device)).expand(B, 3, 3)
+        centres = self._centres(slots, slot_attn, input_c2w, frame)
         is_bg = torch.zeros(B, K, dtype=torch.bool, device=slots.device)
         is_bg[:, -1] = True
         index = None
@@ -236,6 +280,8 @@ class SVORF(nn.Module):
                 order = torch.argsort((~slot_mask).to(torch.int8), dim=1, stable=True)
                 index = order[:, : counts[0]]  # used slots, ascending
                 slots = slots.gather(1, index[..., None].expand(-1, -1, D))
+                if centres is not None:
+                    centres = centres.gather(1, index[..., None].expand(-1, -1, 3))
                 is_bg = index == K - 1
                 if object_transforms is not None:
                     object_transforms = object_transforms.gather(
@@ -243,8 +289,9 @@ class SVORF(nn.Module):
                     )
                 slot_mask = None
         out = self._render(
-            slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, object_transforms, frame
-        )
+            slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, object_transforms, frame,
+            centres,
+        )  # fmt: skip
         if index is not None and out.slot_probs is not None:
             full = out.slot_probs.new_zeros(B, rays_o.shape[1], K)
             out.slot_probs = full.scatter(
@@ -292,8 +339,9 @@ class SVORF(nn.Module):
         return contextlib.nullcontext()
 
     def _render(
-        self, slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, transforms, frame
-    ):
+        self, slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, transforms, frame,
+        centres=None,
+    ):  # fmt: skip
         cfg = self.cfg
         B, R, _ = rays_o.shape
         if cfg.clip_to_box:
@@ -304,7 +352,9 @@ class SVORF(nn.Module):
         with self._autocast(slots.device):
             params = self.fields.params(slots)
         inv = None if transforms is None else torch.linalg.inv(transforms)
-        ctx = self.query_context(slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame)
+        ctx = self.query_context(
+            slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame, centres=centres
+        )
 
         t_c = sample_stratified(near_r, far_r, R, cfg.n_coarse, perturb)
         q_c = self._query(ctx, t_c)
@@ -409,20 +459,55 @@ class SVORF(nn.Module):
         )
 
     def query_context(
-        self, slots, params, rays_o, rays_d, slot_mask, is_bg, inv=None, frame=None
+        self, slots, params, rays_o, rays_d, slot_mask, is_bg, inv=None, frame=None, centres=None
     ) -> tuple:
         """What :meth:`_query` needs besides the samples (tests and speedbench build it too):
         slots [B, K, D], field params, rays [B, R, 3] (world), slot_mask [B, K] or None,
         is_bg [B, K], inverse object transforms [B, K, 4, 4] or None, frame [B, 3, 3] or
-        None; the slot-locality centres are derived here."""
-        return (slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame, self._centres(slots))
+        None, slot-locality centres [B, K, 3] or None (None: the learned centres are
+        derived here from the slots)."""
+        if centres is None:
+            centres = self._centres(slots)
+        return (slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame, centres)
 
-    def _centres(self, slots: Tensor) -> Tensor | None:
-        """Slot-locality centres [B, K, 3] (networks' frame), None when slot_locality is off."""
-        if self.slot_centre is None:
+    def _centres(
+        self,
+        slots: Tensor,
+        slot_attn: Tensor | None = None,
+        input_c2w: Tensor | None = None,
+        frame: Tensor | None = None,
+    ) -> Tensor | None:
+        """Slot-locality centres [B, K, 3] (networks' frame), None when slot_locality is off.
+
+        ``slot_centre="learned"``: e * tanh(Linear(s_k)). ``"attention"``: the
+        attention-weighted mean of the feature-map tokens' ground points (see
+        :func:`token_ground_points`), rotated into the networks' frame by ``frame``.
+        """
+        cfg = self.cfg
+        if cfg.slot_locality is None:
             return None
-        extent = self.cfg.fg_box if self.cfg.fg_box is not None else self.cfg.box_half
-        return extent * torch.tanh(self.slot_centre(slots.float()))
+        extent = cfg.fg_box if cfg.fg_box is not None else cfg.box_half
+        if cfg.slot_centre == "learned":
+            assert self.slot_centre is not None
+            return extent * torch.tanh(self.slot_centre(slots.float()))
+        B, K, _ = slots.shape
+        if slot_attn is None or input_c2w is None:
+            raise ValueError(
+                "SVORF.render_rays: slot_centre='attention' needs slot_attn "
+                "(encode(images, return_attn=True)) and input_c2w (the input camera)"
+            )
+        if slot_attn.dim() != 4 or tuple(slot_attn.shape[:2]) != (B, K):
+            raise ValueError(
+                f"SVORF.render_rays: slot_attn must be [B={B}, K={K}, h, w], "
+                f"got {tuple(slot_attn.shape)}"
+            )
+        c2w = input_c2w.reshape(-1, 4, 4).to(slots.device, torch.float32).expand(B, 4, 4)
+        h, w = slot_attn.shape[-2:]
+        ground = token_ground_points(c2w, h, w, cfg.centre_focal, cfg.centre_height, extent)
+        centres = torch.einsum("bkt,btc->bkc", slot_attn.float().reshape(B, K, h * w), ground)
+        if frame is not None:
+            centres = torch.einsum("bij,bkj->bki", frame, centres)
+        return centres
 
     def _selects_by_m(self, K: int) -> bool:
         """Whether slot_topk / slot_keep_mass drop slots by m (slot_guided only)."""
@@ -488,7 +573,8 @@ class SVORF(nn.Module):
         In training mode with ``cfg.slot_mask_train > 0`` and no ``slot_mask`` given, a
         random mask from :meth:`sample_slot_mask` is used (packed-11 setting).
         """
-        slots = self.encode(images)
+        slots, extra = self.encode_for_render(images)
+        kw.update(extra)
         if self.training and self.cfg.slot_mask_train > 0 and kw.get("slot_mask") is None:
             kw["slot_mask"] = self.sample_slot_mask(slots.shape[0], device=slots.device)
         return self.render_rays(slots, rays_o, rays_d, **kw)

@@ -211,12 +211,12 @@ def _labels_with_slots_of(
     model.eval()
     try:
         sv, so = ds[scene], ds[other]
-        slots = model.encode(so.images[input_view : input_view + 1].to(device))
+        slots, extra = model.encode_for_render(so.images[input_view : input_view + 1].to(device))
         h, w = ds.image_hw
         o = sv.rays_o[input_view].reshape(1, h * w, 3).to(device)
         d = sv.rays_d[input_view].reshape(1, h * w, 3).to(device)
         c2w = sv.cam_to_world[input_view : input_view + 1].to(device)
-        out = model.render_chunked(slots, o, d, 4096, input_c2w=c2w)
+        out = model.render_chunked(slots, o, d, 4096, input_c2w=c2w, **extra)
     finally:
         model.train(was)
     return out.slot_probs[0].argmax(-1).view(h, w).cpu()

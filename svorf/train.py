@@ -412,13 +412,13 @@ def predict_scene(
         sv = dataset[scene]
         v, (h, w) = dataset.n_views, dataset.image_hw
         src = sv if slots_scene is None else dataset[slots_scene]
-        slots = model.encode(src.images[input_view : input_view + 1].to(device))
+        slots, extra = model.encode_for_render(src.images[input_view : input_view + 1].to(device))
         input_c2w = sv.cam_to_world[input_view : input_view + 1].to(device)
         rgb, depth_t, acc, probs = [], [], [], []
         for j in range(v):
             o = sv.rays_o[j].reshape(1, h * w, 3).to(device)
             d = sv.rays_d[j].reshape(1, h * w, 3).to(device)
-            out = model.render_chunked(slots, o, d, chunk, input_c2w=input_c2w)
+            out = model.render_chunked(slots, o, d, chunk, input_c2w=input_c2w, **extra)
             rgb.append(out.rgb[0].float().cpu())
             depth_t.append(out.depth[0].float().cpu())
             acc.append(out.acc[0].float().cpu())

@@ -584,3 +584,88 @@ def test_dec_value_pos_puts_token_positions_into_the_slots(module):
     assert not torch.allclose(out, plain(flat), atol=1e-4)
     assert torch.isfinite(out).all()
     assert ModelConfig.from_dict({}).dec_value_pos is False  # old configs load unchanged
+
+
+# ----------------------------------------------------------------------------- attention centres
+
+
+def test_token_ground_points_match_an_independent_ray_plane_cut():
+    """Each token's ground point is where the ray through the token centre (pinhole, focal
+    = centre_focal x width) meets z = height: checked against look_at_opencv + a direct
+    ray-plane intersection written here."""
+    import numpy as np
+
+    from svorf.model import token_ground_points
+    from svorf.synthetic import look_at_opencv
+
+    eye = np.array([9.0, -7.0, 8.0])
+    c2w = torch.tensor(look_at_opencv(eye), dtype=torch.float32)[None]
+    h, w, f, z0 = 4, 6, 1.1, 0.35
+    got = token_ground_points(c2w, h, w, f, z0, extent=100.0)[0].numpy()
+    R = look_at_opencv(eye)[:3, :3]
+    for i in range(h):
+        for j in range(w):
+            d = R @ np.array([((j + 0.5) / w - 0.5) / f, ((i + 0.5) / h - 0.5) / f, 1.0])
+            p = eye + (z0 - eye[2]) / d[2] * d
+            np.testing.assert_allclose(got[i * w + j], p, rtol=1e-4, atol=1e-4)
+    # Clamped to the object region.
+    clamped = token_ground_points(c2w, h, w, f, z0, extent=1.0)
+    assert clamped[..., :2].abs().max() <= 1.0 and (clamped[..., 2] == z0).all()
+
+
+def test_attention_centres_follow_each_slots_attention():
+    """slot_centre='attention': c_k = sum_t attn_kt * ground_t (then into the networks'
+    frame); encode returns attention maps that sum to 1; rendering needs them."""
+    import numpy as np
+
+    from svorf.model import azimuth_frame, token_ground_points
+    from svorf.synthetic import look_at_opencv
+
+    model = smoke(num_slots=3, slot_locality=0.8, slot_centre="attention").eval()
+    assert model.slot_centre is None  # nothing learned for the centres
+    imgs = make_images(2)
+    slots, extra = model.encode_for_render(imgs)
+    attn = extra["slot_attn"]
+    assert attn.shape[:2] == (2, 3) and torch.allclose(attn.sum((-1, -2)), torch.ones(2, 3))
+    c2w = torch.tensor(look_at_opencv(np.array([9.0, -7.0, 8.0])), dtype=torch.float32)
+    c2w = c2w[None].expand(2, 4, 4)
+    frame = azimuth_frame(c2w)
+    c = model._centres(slots, attn, c2w, frame)
+    h, w = attn.shape[-2:]
+    ground = token_ground_points(c2w, h, w, model.cfg.centre_focal, model.cfg.centre_height,
+                                 model.cfg.box_half)  # fmt: skip
+    for b in range(2):
+        for k in range(3):
+            world = (attn[b, k].reshape(-1, 1) * ground[b]).sum(0)
+            torch.testing.assert_close(c[b, k], frame[b] @ world, rtol=1e-4, atol=1e-5)
+    # A one-hot attention puts the centre on that token's ground point.
+    onehot = torch.zeros_like(attn)
+    onehot[:, :, 1, 2] = 1.0
+    c1 = model._centres(slots, onehot, c2w, None)
+    torch.testing.assert_close(c1[0, 0], ground[0, 1 * w + 2])
+    o, d = make_rays(2, 8)
+    out = model.render_rays(slots, o, d, input_c2w=c2w, slot_attn=attn)
+    assert_finite(out)
+    with pytest.raises(ValueError, match="slot_attn"):
+        model.render_rays(slots, o, d, input_c2w=c2w)
+    # Training: gradients reach the attention (the decoder's last cross-attention query).
+    model.train()
+    out = model(imgs, o, d, input_c2w=c2w, perturb=True)
+    model.loss(out, torch.rand(2, 8, 3))[0].backward()
+    g = model.slot_module.layers[-1].ca.q.weight.grad
+    assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
+    with pytest.raises(ValueError, match="slot_locality"):
+        model_config("smoke", slot_centre="attention")
+
+
+def test_attention_weights_equal_the_fused_attention_path():
+    """MultiHeadAttention(need_weights=True) (explicit softmax, for the attention centres)
+    gives the same output as the fused scaled_dot_product_attention path."""
+    from svorf.decoder import MultiHeadAttention
+
+    torch.manual_seed(0)
+    mha = MultiHeadAttention(16, 4, 16, 12, 12)
+    q, kv = torch.randn(2, 5, 16), torch.randn(2, 7, 12)
+    out, w = mha(q, kv, kv, need_weights=True)
+    torch.testing.assert_close(out, mha(q, kv, kv), rtol=1e-5, atol=1e-6)
+    assert w.shape == (2, 5, 7) and torch.allclose(w.sum(-1), torch.ones(2, 5))
