@@ -21,7 +21,7 @@ EncoderNorm = Literal["batch", "group", "none"]
 DensityAct = Literal["softplus", "relu"]
 Scale = Literal["smoke", "cpu", "paper"]
 CoordFrame = Literal["world", "input_azimuth"]
-SlotCentre = Literal["learned", "attention"]
+SlotCentre = Literal["learned", "attention", "attention_slots"]
 
 
 @dataclass(frozen=True)
@@ -215,7 +215,12 @@ class ModelConfig:
     those ground points weighted by slot k's cross-attention over the tokens (last decoder
     layer, mean over heads). A slot's 3D centre is then where it looks in the image from the
     first step on; nothing is learned for it. Label-free (the camera is an input of the
-    method, the floor plane is the same scene prior as ``fg_zmin``). cpu recipe lever."""
+    method, the floor plane is the same scene prior as ``fg_zmin``). "attention_slots": the
+    same, but the weights are that layer's attention logits normalised over the *slots*
+    (every token shared out among the slots, as in Slot Attention), then over the tokens:
+    slots compete for image regions, so their centres cannot all sit on the same spot
+    (with "attention" they did: measured in docs/cpu_recipe.md). The decoder itself is
+    unchanged. cpu recipe lever."""
     centre_focal: float = 35.0 / 32.0
     """Input camera focal length / image width for ``slot_centre="attention"`` (the
     generator's 35 mm lens on a 32 mm sensor; principal point at the image centre)."""
@@ -298,9 +303,9 @@ class ModelConfig:
                     "ModelConfig.slot_locality needs per-slot fields; composition='slot_mixer' "
                     "mixes them (use slot_guided or density_weighted)"
                 )
-        if self.slot_centre == "attention" and self.slot_locality is None:
+        if self.slot_centre != "learned" and self.slot_locality is None:
             raise ValueError(
-                "ModelConfig.slot_centre='attention' places slot_locality centres: set "
+                f"ModelConfig.slot_centre={self.slot_centre!r} places slot_locality centres: set "
                 "slot_locality (a radius) too"
             )
         if not self.centre_focal > 0:

@@ -75,8 +75,8 @@ class MultiHeadAttention(nn.Module):
         key_mask: Tensor | None = None,
         need_weights: bool = False,
     ) -> Tensor | tuple[Tensor, Tensor]:
-        """Attention output [B, Lq, dim]; with ``need_weights`` also the attention weights
-        averaged over heads, [B, Lq, Lk] (rows sum to 1)."""
+        """Attention output [B, Lq, dim]; with ``need_weights`` also the attention logits
+        [B, H, Lq, Lk] (softmax over the last axis gives the weights used)."""
         B, Lq, _ = q.shape
         Lk = k.shape[1]
         H = self.heads
@@ -92,7 +92,7 @@ class MultiHeadAttention(nn.Module):
             logits = logits.masked_fill(~mask, float("-inf"))
         w = torch.softmax(logits, dim=-1)
         out = self.o((w @ vh).transpose(1, 2).reshape(B, Lq, -1))
-        return out, w.mean(dim=1)
+        return out, logits
 
 
 class DecoderLayer(nn.Module):
@@ -124,8 +124,8 @@ class DecoderLayer(nn.Module):
     def forward(
         self, x: Tensor, memory: Tensor, memory_pos: Tensor, need_attn: bool = False
     ) -> Tensor | tuple[Tensor, Tensor]:
-        """Updated slots [B, K, D]; with ``need_attn`` also the cross-attention weights
-        [B, K, T] (mean over heads)."""
+        """Updated slots [B, K, D]; with ``need_attn`` also the cross-attention logits
+        [B, H, K, T]."""
         if self.self_attention:
             h = self.norm_sa(x)
             x = x + self.sa(h, h, h)
@@ -183,10 +183,13 @@ class SlotTransformerDecoder(nn.Module):
         self.out_norm = nn.LayerNorm(D)
 
     def forward(
-        self, features: Tensor, return_attn: bool = False
+        self, features: Tensor, return_attn: bool = False, attn_over: str = "tokens"
     ) -> Tensor | tuple[Tensor, Tensor]:
         """Slots [B, K, D]; with ``return_attn`` also the last layer's cross-attention over
-        the feature map, [B, K, h, w] (mean over heads, sums to 1 per slot)."""
+        the feature map, [B, K, h, w], summing to 1 per slot: ``attn_over="tokens"`` the
+        weights the layer uses (softmax over tokens, mean over heads); ``"slots"`` the same
+        logits normalised over the slots (each token shared out among the slots, as in
+        Slot Attention; mean over heads), then over the tokens."""
         memory, pos = _flatten_features(features, self.mem_norm)
         x = self.init(features)
         attn = None
@@ -198,7 +201,12 @@ class SlotTransformerDecoder(nn.Module):
         slots = self.out_norm(x)
         if not return_attn:
             return slots
-        return slots, attn.reshape(*slots.shape[:2], *features.shape[-2:])
+        if attn_over == "slots":
+            w = torch.softmax(attn.float(), dim=2).mean(dim=1) + 1e-8  # [B, K, T]
+            w = w / w.sum(dim=-1, keepdim=True)
+        else:
+            w = torch.softmax(attn.float(), dim=-1).mean(dim=1)
+        return slots, w.reshape(*slots.shape[:2], *features.shape[-2:])
 
 
 class SlotAttention(nn.Module):
@@ -228,10 +236,11 @@ class SlotAttention(nn.Module):
         self.scale = D**-0.5
 
     def forward(
-        self, features: Tensor, return_attn: bool = False
+        self, features: Tensor, return_attn: bool = False, attn_over: str = "slots"
     ) -> Tensor | tuple[Tensor, Tensor]:
         """Slots [B, K, D]; with ``return_attn`` also the last iteration's attention,
-        normalised over the tokens, [B, K, h, w]."""
+        normalised over the tokens, [B, K, h, w] (Slot Attention's attention is a softmax
+        over the slots already: ``attn_over`` is accepted for a common signature)."""
         memory, pos = _flatten_features(features, self.mem_norm)
         k = self.k(memory + pos)  # [B, T, D]
         v = self.v(memory + pos if self.value_pos else memory)

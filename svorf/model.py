@@ -200,12 +200,15 @@ class SVORF(nn.Module):
             images = F.interpolate(
                 images, size=(s, s), mode="bilinear", align_corners=False, antialias=True
             )
-        return self.slot_module(self.encoder(images), return_attn=return_attn)
+        if not return_attn:
+            return self.slot_module(self.encoder(images))
+        over = "slots" if self.cfg.slot_centre == "attention_slots" else "tokens"
+        return self.slot_module(self.encoder(images), return_attn=True, attn_over=over)
 
     def encode_for_render(self, images: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """(slots [B, K, D], the extra keyword arguments :meth:`render_rays` needs for them):
         ``{"slot_attn": ...}`` with ``slot_centre="attention"``, else ``{}``."""
-        if self.cfg.slot_centre == "attention" and self.cfg.slot_locality is not None:
+        if self.cfg.slot_centre != "learned" and self.cfg.slot_locality is not None:
             slots, attn = self.encode(images, return_attn=True)
             return slots, {"slot_attn": attn}
         return self.encode(images), {}
@@ -493,7 +496,7 @@ class SVORF(nn.Module):
         B, K, _ = slots.shape
         if slot_attn is None or input_c2w is None:
             raise ValueError(
-                "SVORF.render_rays: slot_centre='attention' needs slot_attn "
+                f"SVORF.render_rays: slot_centre={cfg.slot_centre!r} needs slot_attn "
                 "(encode(images, return_attn=True)) and input_c2w (the input camera)"
             )
         if slot_attn.dim() != 4 or tuple(slot_attn.shape[:2]) != (B, K):

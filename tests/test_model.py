@@ -666,6 +666,42 @@ def test_attention_weights_equal_the_fused_attention_path():
     torch.manual_seed(0)
     mha = MultiHeadAttention(16, 4, 16, 12, 12)
     q, kv = torch.randn(2, 5, 16), torch.randn(2, 7, 12)
-    out, w = mha(q, kv, kv, need_weights=True)
+    out, logits = mha(q, kv, kv, need_weights=True)
     torch.testing.assert_close(out, mha(q, kv, kv), rtol=1e-5, atol=1e-6)
-    assert w.shape == (2, 5, 7) and torch.allclose(w.sum(-1), torch.ones(2, 5))
+    assert logits.shape == (2, 4, 5, 7)
+
+
+def test_slot_normalised_attention_maps_share_each_token_among_the_slots():
+    """attn_over="slots": the last layer's logits, softmax over the slots (per head, mean
+    over heads), then normalised over the tokens; "tokens": the weights the layer uses."""
+    cfg = model_config("smoke", num_slots=4)
+    torch.manual_seed(0)
+    dec = SlotTransformerDecoder(cfg).eval()
+    feats = torch.randn(2, cfg.feat_dim, 3, 5)
+    slots_t, a_tok = dec(feats, return_attn=True, attn_over="tokens")
+    slots_s, a_slot = dec(feats, return_attn=True, attn_over="slots")
+    torch.testing.assert_close(slots_t, dec(feats))  # the slots do not change
+    torch.testing.assert_close(slots_s, slots_t)
+    for a in (a_tok, a_slot):
+        assert a.shape == (2, 4, 3, 5)
+        torch.testing.assert_close(a.sum((-1, -2)), torch.ones(2, 4))
+    # Oracle: recompute the last layer's logits by hand.
+    from svorf.decoder import _flatten_features
+
+    memory, pos = _flatten_features(feats, dec.mem_norm)
+    x = dec.init(feats)
+    for layer in dec.layers[:-1]:
+        x = layer(x, memory, pos)
+    last = dec.layers[-1]
+    if last.self_attention:
+        h = last.norm_sa(x)
+        x = x + last.sa(h, h, h)
+    _, logits = last.ca(last.norm_ca(x), memory + pos, memory, need_weights=True)
+    want_tok = torch.softmax(logits, -1).mean(1)
+    want_slot = torch.softmax(logits, 2).mean(1) + 1e-8
+    want_slot = want_slot / want_slot.sum(-1, keepdim=True)
+    torch.testing.assert_close(a_tok.reshape(2, 4, -1), want_tok)
+    torch.testing.assert_close(a_slot.reshape(2, 4, -1), want_slot)
+    model = smoke(num_slots=4, slot_locality=1.0, slot_centre="attention_slots")
+    _, extra = model.encode_for_render(make_images(1))
+    assert extra["slot_attn"].shape[:2] == (1, 4)
