@@ -224,6 +224,11 @@ class ModelConfig:
     centre_focal: float = 35.0 / 32.0
     """Input camera focal length / image width for ``slot_centre="attention"`` (the
     generator's 35 mm lens on a 32 mm sensor; principal point at the image centre)."""
+    centre_temperature: float = 1.0
+    """Temperature of the softmax over slots for ``slot_centre="attention_slots"``
+    (logits / T). T < 1 hands each token to fewer slots: at initialisation the logits differ
+    little between slots, and with T = 1 every slot gets an even share of every token, so
+    every centre sits at the same spot (measured: the centres then hardly move)."""
     centre_height: float = 0.35
     """Height (world z) of the plane the attention rays are cut at (CLEVR object centres lie
     at z = 0.35 or 0.7)."""
@@ -307,6 +312,10 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.slot_centre={self.slot_centre!r} places slot_locality centres: set "
                 "slot_locality (a radius) too"
+            )
+        if not self.centre_temperature > 0:
+            raise ValueError(
+                f"ModelConfig.centre_temperature must be > 0, got {self.centre_temperature}"
             )
         if not self.centre_focal > 0:
             raise ValueError(f"ModelConfig.centre_focal must be > 0, got {self.centre_focal}")

@@ -181,6 +181,7 @@ class SlotTransformerDecoder(nn.Module):
             for _ in range(cfg.dec_layers)
         )
         self.out_norm = nn.LayerNorm(D)
+        self.centre_temperature = cfg.centre_temperature
 
     def forward(
         self, features: Tensor, return_attn: bool = False, attn_over: str = "tokens"
@@ -201,8 +202,8 @@ class SlotTransformerDecoder(nn.Module):
         slots = self.out_norm(x)
         if not return_attn:
             return slots
-        if attn_over == "slots":
-            w = torch.softmax(attn.float(), dim=2).mean(dim=1) + 1e-8  # [B, K, T]
+        if attn_over == "slots":  # ModelConfig.centre_temperature sharpens the sharing
+            w = torch.softmax(attn.float() / self.centre_temperature, dim=2).mean(dim=1) + 1e-8
             w = w / w.sum(dim=-1, keepdim=True)
         else:
             w = torch.softmax(attn.float(), dim=-1).mean(dim=1)

@@ -702,6 +702,15 @@ def test_slot_normalised_attention_maps_share_each_token_among_the_slots():
     want_slot = want_slot / want_slot.sum(-1, keepdim=True)
     torch.testing.assert_close(a_tok.reshape(2, 4, -1), want_tok)
     torch.testing.assert_close(a_slot.reshape(2, 4, -1), want_slot)
+    # centre_temperature T divides those logits before the softmax over slots.
+    sharp = SlotTransformerDecoder(cfg.replace(centre_temperature=0.1)).eval()
+    sharp.load_state_dict(dec.state_dict())
+    _, a_sharp = sharp(feats, return_attn=True, attn_over="slots")
+    want_sharp = torch.softmax(logits / 0.1, 2).mean(1) + 1e-8
+    want_sharp = want_sharp / want_sharp.sum(-1, keepdim=True)
+    torch.testing.assert_close(a_sharp.reshape(2, 4, -1), want_sharp)
+    with pytest.raises(ValueError, match="centre_temperature"):
+        model_config("smoke", centre_temperature=0.0)
     model = smoke(num_slots=4, slot_locality=1.0, slot_centre="attention_slots")
     _, extra = model.encode_for_render(make_images(1))
     assert extra["slot_attn"].shape[:2] == (1, 4)
