@@ -54,6 +54,7 @@ __all__ = [
     "SegMetricsFn",
     "adjusted_rand_index",
     "make_eval_fn",
+    "plot_runs",
     "recipe_configs",
     "save_segmentation_grid",
     "segmentation_metrics_basic",
@@ -294,6 +295,54 @@ def train_eval(
     return {"summary": summary, "final": final, "grid": str(out / "grid.png")}
 
 
+def _read_jsonl(path: Path) -> list[dict[str, Any]]:
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def plot_runs(runs: dict[str, str | Path], path: str | Path) -> Path:
+    """PNG of recipe runs side by side over training wall time (minutes): the training
+    loss (``log.jsonl``) and the held-out FG-ARI with its scene-shuffle control
+    (``eval.jsonl``: solid = FG-ARI, dashed = ``fg_ari_shuffled``).
+
+    Args:
+        runs: label -> run folder of :func:`train_eval`.
+        path: output PNG.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_l, ax_m) = plt.subplots(1, 2, figsize=(11, 4))
+    for i, (label, run) in enumerate(runs.items()):
+        colour = f"C{i}"
+        log = _read_jsonl(Path(run) / "log.jsonl")
+        if log:
+            ax_l.plot([r["wall_s"] / 60 for r in log], [r["loss"] for r in log], colour,
+                      lw=0.8, label=label)  # fmt: skip
+        ev = _read_jsonl(Path(run) / "eval.jsonl")
+        if ev:
+            t = [r["wall_s"] / 60 for r in ev]
+            ax_m.plot(t, [r["fg_ari"] for r in ev], colour, marker="o", label=f"{label}: FG-ARI")
+            if all("fg_ari_shuffled" in r for r in ev):
+                ax_m.plot(t, [r["fg_ari_shuffled"] for r in ev], colour, ls="--", marker="x",
+                          label=f"{label}: shuffled slots")  # fmt: skip
+    ax_l.set(xlabel="training wall time (min)", ylabel="training loss", yscale="log",
+             title="loss")  # fmt: skip
+    ax_m.set(xlabel="training wall time (min)", ylabel="held-out FG-ARI", ylim=(0, 1),
+             title="held-out FG-ARI (input view)")  # fmt: skip
+    ax_l.legend(fontsize=8)
+    ax_m.legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _benchmark_metrics() -> SegMetricsFn | None:
     try:  # a tool-side convenience; svorf itself never needs benchmark
         from benchmark.metrics import segmentation_metrics
@@ -338,7 +387,17 @@ def main(argv: list[str] | None = None) -> int:
         help="any other ModelConfig field (VALUE as JSON, else a string), repeatable; "
         "e.g. --model-set slot_module=slot_attention",
     )
+    pl = sub.add_parser("plot", help="loss and held-out FG-ARI of runs over wall time (PNG)")
+    pl.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
+    pl.add_argument("--out", required=True, help="PNG path")
     a = ap.parse_args(argv)
+    if a.cmd == "plot":
+        runs = dict(x.split("=", 1) if "=" in x else (Path(x).name, x) for x in a.runs)
+        missing = [r for r in runs.values() if not (Path(r) / "log.jsonl").is_file()]
+        if missing:
+            raise SystemExit(f"plot: not a recipe run folder (no log.jsonl): {missing[0]}")
+        print(plot_runs(runs, a.out))
+        return 0
     torch.set_num_threads(a.threads)
     levers: dict[str, Any] = {}
     for name in ("ray_sampling", "nvs_warmup", "comp_temperature", "coord_frame"):

@@ -187,3 +187,24 @@ def test_bg_outside_fg_keeps_the_background_slot_out_of_the_object_region():
     with pytest.raises(ValueError, match="bg_outside_fg"):
         model_config("smoke", bg_outside_fg=True)
     assert model_config("paper").bg_outside_fg is False
+
+
+def test_plot_subcommand_draws_runs_and_rejects_a_non_run(tmp_path):
+    from PIL import Image
+
+    from svorf.recipe import main
+
+    run = tmp_path / "r"
+    run.mkdir()
+    (run / "log.jsonl").write_text(
+        "".join(json.dumps({"wall_s": 30.0 * i, "loss": 0.02 / (i + 1)}) + "\n" for i in range(4))
+    )
+    (run / "eval.jsonl").write_text(
+        json.dumps({"wall_s": 60.0, "fg_ari": 0.4, "fg_ari_shuffled": 0.1}) + "\n"
+    )
+    out = tmp_path / "curve.png"
+    assert main(["plot", f"mine={run}", "--out", str(out)]) == 0
+    w, h = Image.open(out).size
+    assert w > 600 and h > 200
+    with pytest.raises(SystemExit, match="no log.jsonl"):
+        main(["plot", str(tmp_path / "nope"), "--out", str(out)])
