@@ -642,10 +642,11 @@ def train(
 
     if resume and ckpt_path.exists():
         ckpt = _read_checkpoint(ckpt_path)
-        if ckpt["model_config"] != model_cfg.to_dict():
-            diff = sorted(
-                k for k, v in model_cfg.to_dict().items() if ckpt["model_config"].get(k) != v
-            )
+        # Through from_dict: a checkpoint written before a config field existed holds the
+        # field's default (the behaviour it was trained with), not a mismatch.
+        saved = ModelConfig.from_dict(dict(ckpt["model_config"])).to_dict()
+        if saved != model_cfg.to_dict():
+            diff = sorted(k for k, v in model_cfg.to_dict().items() if saved.get(k) != v)
             raise CheckpointError(
                 f"{ckpt_path}: resume with a different model config (fields {diff})"
             )

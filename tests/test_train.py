@@ -141,6 +141,22 @@ def test_resume_refuses_a_different_run(split, tmp_path):
         train(split, run, MCFG, tcfg(steps=2, lr=0.5), resume=True, progress=False)
 
 
+def test_resume_a_checkpoint_saved_before_a_config_field_existed(split, tmp_path):
+    """A model-config field added after the checkpoint was written takes its default (the
+    behaviour the run was trained with): resuming is not a config mismatch."""
+    run = tmp_path / "old"
+    train(split, run, MCFG, tcfg(steps=2), progress=False)
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=True)
+    for key in ("slot_centre", "centre_temperature", "dec_value_pos"):
+        ckpt["model_config"].pop(key)
+    torch.save(ckpt, run / "checkpoint.pt")
+    train(split, run, MCFG, tcfg(steps=3), resume=True, progress=False)
+    assert [r["step"] for r in _log(run)][-1] == 3
+    with pytest.raises(CheckpointError, match="slot_centre"):  # a real difference still is
+        train(split, run, MCFG.replace(slot_locality=1.0, slot_centre="attention"),
+              tcfg(steps=4), resume=True, progress=False)  # fmt: skip
+
+
 def test_nan_loss_raises_and_keeps_the_last_checkpoint(split, tmp_path, monkeypatch):
     run = tmp_path / "run"
     train(split, run, MCFG, tcfg(steps=2, ckpt_every=2), progress=False)
