@@ -6,6 +6,7 @@ Usage::
                        [--device cpu|cuda|auto] [--data-source generator|synthetic]
                        [--seed N] [--steps N] [--train-minutes M] [--datasets A[,B]]
                        [--lpips-weights FILE] [--no-progress]
+                       [--backend local|ray [--address ADDR]]
     benchmark leaderboard DIR          # merge DIR/**/report.json -> DIR/leaderboard.json
     benchmark html DIR                 # (re)write DIR/index.html from DIR/report.json
     benchmark screenshot DIR [--png F] # render DIR/index.html with headless Chromium
@@ -72,6 +73,19 @@ def _parser() -> argparse.ArgumentParser:
         "--lpips-weights", default=None, help="LPIPS AlexNet weight file (else null + reason)"
     )
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
+    r.add_argument(
+        "--backend",
+        default="local",
+        choices=("local", "ray"),
+        help="table protocols: local = this process (default); ray = dataset scenes, "
+        "training runs and evaluations as Ray tasks (docs/scaleout.md)",
+    )
+    r.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster address (auto, host:6379, ray://host:10001); default: "
+        "RAY_ADDRESS, else a local Ray instance",
+    )
 
     lb = sub.add_parser("leaderboard", help="merge reports into DIR/leaderboard.json and print it")
     lb.add_argument("dir")
@@ -103,7 +117,13 @@ def _run(args: argparse.Namespace) -> int:
     only = None
     if args.datasets is not None:
         only = [d.strip() for d in args.datasets.split(",") if d.strip()]
-    for flag, value in (("--datasets", only), ("--train-minutes", args.train_minutes)):
+    table_only = (
+        ("--datasets", only),
+        ("--train-minutes", args.train_minutes),
+        ("--backend", None if args.backend == "local" else args.backend),
+        ("--address", args.address),
+    )
+    for flag, value in table_only:
         if value is not None and args.name not in TABLE_PROTOCOLS:
             raise ValueError(
                 f"{flag} applies to the table protocols ({', '.join(TABLE_PROTOCOLS)}), "
@@ -122,6 +142,8 @@ def _run(args: argparse.Namespace) -> int:
         train_steps=args.steps,
         train_minutes=args.train_minutes,
         only_datasets=only,
+        backend=args.backend,
+        address=args.address,
     )
     path = fn(ctx)
     report = json.loads(Path(path).read_text())
@@ -145,8 +167,11 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    from generators.ray_backend import RayMissingError
+
     from benchmark.generator_bridge import DatasetUnavailable
     from benchmark.protocols import NotImplementedProtocol
+    from benchmark.ray_jobs import RayJobError
     from benchmark.schema import SchemaError
 
     try:
@@ -189,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
             return 0
     except (
         DatasetUnavailable,
+        RayJobError,
+        RayMissingError,
         NotImplementedProtocol,
         SchemaError,
         FileNotFoundError,

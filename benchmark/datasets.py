@@ -212,7 +212,15 @@ def _write_synthetic(root: Path, preset: str, split: str, n: int, res: int, seed
 
 
 def _run_generator(
-    root: Path, preset: str, split: str, n: int, settings: ScaleSettings, seed: int, progress: bool
+    root: Path,
+    preset: str,
+    split: str,
+    n: int,
+    settings: ScaleSettings,
+    seed: int,
+    progress: bool,
+    backend: str = "local",
+    address: str | None = None,
 ) -> None:
     from benchmark import generator_bridge
 
@@ -226,6 +234,8 @@ def _run_generator(
         denoise=settings.denoise,
         seed=seed,
         progress=progress,
+        backend=backend,
+        address=address,
     )
 
 
@@ -238,6 +248,8 @@ def ensure_dataset(
     source: str = "generator",
     seed: int = 0,
     progress: bool = True,
+    backend: str = "local",
+    address: str | None = None,
 ) -> DatasetInfo:
     """Return the split folder of ``preset``/``split`` at this scale, generating it if needed.
 
@@ -249,6 +261,8 @@ def ensure_dataset(
         source: ``generator`` (Blender) or ``synthetic`` (analytic stand-in).
         seed: the generator's base seed.
         progress: show a progress bar while generating.
+        backend, address: where the generator renders scenes (``local`` process pool or
+            ``ray`` actors, see ``generators.ray_backend``); the bytes do not depend on it.
 
     Returns:
         The split's :class:`DatasetInfo` with its actual scene count, resolution and
@@ -287,7 +301,7 @@ def ensure_dataset(
         if source == "synthetic":
             _write_synthetic(root, preset, split, n, settings.resolution, seed)
         else:
-            _run_generator(root, preset, split, n, settings, seed, progress)
+            _run_generator(root, preset, split, n, settings, seed, progress, backend, address)
         generated = True
         ok, why = _complete(root, n, settings.resolution)
         if not ok:

@@ -83,6 +83,8 @@ def generate(
     seed: int,
     progress: bool = True,
     workers: int | None = None,
+    backend: str = "local",
+    address: str | None = None,
 ) -> None:
     """Render ``n_scenes`` scenes of ``preset``/``split`` into ``root`` (resuming).
 
@@ -118,6 +120,13 @@ def generate(
         put(("denoise",), bool(denoise))
     if workers is not None:
         put(("workers",), int(workers))
+    if backend != "local" or address is not None:
+        if "backend" not in fields:
+            raise DatasetUnavailable(
+                f"this generator has no backend option, so it cannot render with {backend!r}"
+            )
+        put(("backend",), backend)
+        put(("address",), address)
     missing = [
         f.name
         for f in dataclasses.fields(cls)

@@ -58,14 +58,17 @@ from benchmark.scales import ScaleSettings, get_scale
 from scenefmt import atomic_write_bytes
 
 __all__ = [
+    "BACKENDS",
     "BUDGET_STEP_CAP",
     "Context",
     "MeasuredRow",
     "ModelJob",
     "ModelRecord",
+    "evaluate_run",
     "row_id",
     "row_metrics",
     "run_table_protocol",
+    "train_run",
     "verdicts_for",
 ]
 
@@ -75,6 +78,9 @@ _BOOKKEEPING = ("device", "log_every", "ckpt_every", "eval_every", "eval_scenes"
 #: Step limit of a run with a wall-clock budget (``--train-minutes``) and no ``--steps``:
 #: the budget is what stops it (as in ``python -m svorf.recipe train-eval --minutes``).
 BUDGET_STEP_CAP = 1_000_000
+
+#: Where a table protocol's jobs run (``--backend``).
+BACKENDS = ("local", "ray")
 
 
 @dataclass(frozen=True)
@@ -191,6 +197,11 @@ class Context:
             only); part of the model cache key and recorded in the report.
         only_datasets: test datasets a table protocol keeps (None = all of them);
             an unknown name is a ValueError when the protocol runs.
+        backend: ``local`` (everything in this process) or ``ray``: a table protocol's
+            dataset scenes, training runs and evaluations run as Ray tasks, keyed by
+            their cache keys (:mod:`benchmark.ray_jobs`).
+        address: Ray cluster address (``auto``, ``host:6379``, ``ray://host:10001``;
+            None = ``RAY_ADDRESS``, else a new local instance); only with ``ray``.
     """
 
     def __init__(
@@ -208,7 +219,17 @@ class Context:
         train_steps: int | None = None,
         train_minutes: float | None = None,
         only_datasets: list[str] | tuple[str, ...] | None = None,
+        backend: str = "local",
+        address: str | None = None,
     ) -> None:
+        if backend not in BACKENDS:
+            raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+        if address is not None and backend != "ray":
+            raise ValueError("--address is a Ray cluster address; pass it with --backend ray")
+        self.backend = backend
+        self.address = address
+        #: Model keys trained by this run outside this process (Ray workers).
+        self.trained_elsewhere: set[str] = set()
         self.protocol = protocol
         self.settings: ScaleSettings = get_scale(scale)
         self.scale = scale
@@ -260,6 +281,8 @@ class Context:
                 source=self.data_source,
                 seed=self.seeds["data"],
                 progress=self.progress,
+                backend=self.backend,
+                address=self.address,
             )
             self.timers["data"] += time.perf_counter() - t
         return self.datasets[k]
@@ -323,7 +346,12 @@ class Context:
             except (OSError, ValueError):
                 done = None
         if done is not None:
-            _log(f"model {job.variant} on {job.train_preset}: reusing run {key}")
+            fresh = key in self.trained_elsewhere  # trained by this run on Ray workers
+            _log(
+                f"model {job.variant} on {job.train_preset}: "
+                + ("trained on a Ray worker, run " if fresh else "reusing run ")
+                + key
+            )
             rec = ModelRecord(
                 key,
                 run_dir,
@@ -332,7 +360,7 @@ class Context:
                 mdict,
                 tdict,
                 self.seeds["train"],
-                True,
+                not fresh,
                 float(done.get("train_wall_s", 0.0)),
                 done.get("summary", {}),
                 source,
@@ -350,24 +378,20 @@ class Context:
                 f"model {job.variant} on {job.train_preset}: training run {key} "
                 f"({budget}{tdict.get('steps')} steps; configs from {source})"
             )
-            t = time.perf_counter()
-            summary = adapter.train(
-                ds.path, run_dir, mcfg, tcfg, progress=self.progress, max_wall_s=self.train_budget_s
+            payload, wall = train_run(
+                ds.path,
+                run_dir,
+                mcfg,
+                tcfg,
+                key=key,
+                key_src=key_src,
+                job=job,
+                progress=self.progress,
+                max_wall_s=self.train_budget_s,
             )
-            wall = time.perf_counter() - t
             self.timers["training"] += wall
-            train_wall = summary.get("train_wall_s")
-            train_wall = float(train_wall) if isinstance(train_wall, (int, float)) else wall
-            write_json(
-                marker,
-                {
-                    "key": key,
-                    "key_source": key_src,
-                    "summary": summary,
-                    "train_wall_s": train_wall,
-                    "job": vars(job),
-                },
-            )
+            train_wall = payload["train_wall_s"]
+            summary = payload["summary"]
             rec = ModelRecord(
                 key,
                 run_dir,
@@ -406,41 +430,29 @@ class Context:
         )
         return self.out / "evals" / f"{kind}-{test.fingerprint[:16]}-{ekey}"
 
+    def eval_dir(self, rec: ModelRecord, test: DatasetInfo) -> Path:
+        """The evaluation cache folder of ``rec`` on ``test``."""
+        return self._eval_dir(rec.key, test, {})
+
     def evaluation(self, rec: ModelRecord, test: DatasetInfo) -> EvalResult:
         """Score ``rec`` on ``test`` (cached on disk; timed under ``evaluation``)."""
-        d = self._eval_dir(rec.key, test, {})
+        d = self.eval_dir(rec, test)
         cached = _read_eval(d)
         if cached is not None:
             return cached
         _log(f"evaluating run {rec.key} ({rec.job.variant}) on {test.name}")
         t = time.perf_counter()
-        ds = adapter.open_dataset(test.path, image_size=rec.model_config.get("image_size"))
-        model = adapter.load_model(rec.run_dir, device=self.device)
-        bar = None
-        if self.progress:
-            from tqdm import tqdm
-
-            bar = tqdm(
-                total=len(ds)
-                if self.settings.eval_scenes is None
-                else min(len(ds), self.settings.eval_scenes),
-                desc=f"eval {test.preset}",
-                dynamic_ncols=True,
-            )
-        try:
-            res = evaluate_model(
-                model,
-                ds,
-                input_view=0,
-                max_scenes=self.settings.eval_scenes,
-                lpips_weights=self.lpips_weights,
-                progress=(lambda i, n: bar.update(1)) if bar is not None else None,
-            )
-        finally:
-            if bar is not None:
-                bar.close()
+        res = evaluate_run(
+            rec.run_dir,
+            test,
+            d,
+            image_size=rec.model_config.get("image_size"),
+            device=self.device,
+            max_scenes=self.settings.eval_scenes,
+            lpips_weights=self.lpips_weights,
+            progress=self.progress,
+        )
         self.timers["evaluation"] += time.perf_counter() - t
-        _write_eval(d, res)
         return res
 
     def baselines(self, test: DatasetInfo, num_slots: int) -> dict[str, EvalResult]:
@@ -488,6 +500,7 @@ class Context:
             "train_minutes": self.train_minutes,
             "data_source": self.data_source,
             "only_datasets": None if self.only_datasets is None else list(self.only_datasets),
+            "backend": self.backend,
         }
         return rep
 
@@ -548,6 +561,84 @@ class Context:
         _log(f"report: {path}")
         _log(f"page:   {self.report_dir / 'index.html'}")
         return path
+
+
+def train_run(
+    ds_path: Path,
+    run_dir: Path,
+    mcfg: Any,
+    tcfg: Any,
+    *,
+    key: str,
+    key_src: dict[str, Any],
+    job: ModelJob,
+    progress: bool,
+    max_wall_s: float | None,
+) -> tuple[dict[str, Any], float]:
+    """Train one cached model run and mark it finished (``benchmark_run.json``).
+
+    The unit of work of :meth:`Context.model` and of a Ray training task
+    (:mod:`benchmark.ray_jobs`); svorf resumes an interrupted run from ``run_dir``.
+
+    Returns:
+        ``(marker payload, wall seconds of this call)``.
+    """
+    t = time.perf_counter()
+    summary = adapter.train(ds_path, run_dir, mcfg, tcfg, progress=progress, max_wall_s=max_wall_s)
+    wall = time.perf_counter() - t
+    train_wall = summary.get("train_wall_s")
+    train_wall = float(train_wall) if isinstance(train_wall, (int, float)) else wall
+    payload = {
+        "key": key,
+        "key_source": key_src,
+        "summary": summary,
+        "train_wall_s": train_wall,
+        "job": vars(job),
+    }
+    write_json(Path(run_dir) / "benchmark_run.json", payload)
+    return payload, wall
+
+
+def evaluate_run(
+    run_dir: Path,
+    test: DatasetInfo,
+    out_dir: Path,
+    *,
+    image_size: Any,
+    device: str,
+    max_scenes: int | None,
+    lpips_weights: str | None,
+    progress: bool,
+) -> EvalResult:
+    """Score the model in ``run_dir`` on ``test`` and write the result to ``out_dir``.
+
+    The unit of work of :meth:`Context.evaluation` and of a Ray evaluation task.
+    """
+    ds = adapter.open_dataset(test.path, image_size=image_size)
+    model = adapter.load_model(run_dir, device=device)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(
+            total=len(ds) if max_scenes is None else min(len(ds), max_scenes),
+            desc=f"eval {test.preset}",
+            dynamic_ncols=True,
+        )
+    try:
+        res = evaluate_model(
+            model,
+            ds,
+            input_view=0,
+            max_scenes=max_scenes,
+            lpips_weights=lpips_weights,
+            progress=(lambda i, n: bar.update(1)) if bar is not None else None,
+        )
+    finally:
+        if bar is not None:
+            bar.close()
+    _write_eval(Path(out_dir), res)
+    return res
 
 
 def _read_eval(d: Path) -> EvalResult | None:
@@ -804,6 +895,12 @@ def run_table_protocol(
         if t not in PAPER_TABLES:
             raise ValueError(f"unknown paper table {t!r}")
     measured, keep, left_out = _filter_datasets(ctx, measured)
+    if ctx.backend == "ray":
+        from benchmark.ray_jobs import run_jobs_on_ray
+
+        # Datasets, training runs and evaluations as Ray tasks; the loop below then finds
+        # every one of them in the caches and only assembles the rows.
+        run_jobs_on_ray(ctx, measured)
     report = ctx.base_report()
     store_ctx = {
         "scale": ctx.scale,
