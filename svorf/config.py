@@ -11,6 +11,7 @@ every choice the paper leaves open is a field here with a comment saying so.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
@@ -154,12 +155,15 @@ class ModelConfig:
 
     # ---- speed knobs (DESIGN 8; all off at paper scale, tolerances in tests/test_speed_knobs.py,
     # speeds from ``python -m svorf.speedbench``) ----
-    bf16_autocast: bool = False
+    bf16_autocast: bool | str = False
     """Run the hypernetwork, the per-point MLPs and the composition under bfloat16 autocast
     (on CPUs with AVX-512 BF16 / AMX the matmuls are faster and every activation is half the
     bytes). gamma(x), the softmax over slots, the composed field, transmittance (log-space
     cumulative sums), importance sampling and the connectivity loss stay float32. Off =
-    float32 everywhere (paper)."""
+    float32 everywhere (paper). ``"auto"``: on only where the device has native bf16
+    (:func:`bf16_native`). On a CPU without it (e.g. AVX2 only) torch emulates bf16 and a
+    cpu-scale training step was measured 3-5x *slower* (``python -m svorf.speedbench``),
+    so ``"auto"`` is what the ``cpu`` scale ships."""
     fg_box: float | None = None
     """If set, foreground (object) fields are evaluated only inside [-fg_box, fg_box]^3 and
     have density 0 outside, where they are also left out of the composition (the background
@@ -241,6 +245,10 @@ class ModelConfig:
         _check_choice("density_act", self.density_act, DensityAct)
         _check_choice("coord_frame", self.coord_frame, CoordFrame)
         _check_choice("slot_centre", self.slot_centre, SlotCentre)
+        if self.bf16_autocast not in (True, False, "auto"):
+            raise ValueError(
+                f"ModelConfig.bf16_autocast must be true, false or 'auto', got {self.bf16_autocast!r}"
+            )
         positive = (
             "image_size",
             "enc_width",
@@ -378,6 +386,36 @@ def _check_choice(name: str, value: object, literal: object) -> None:
         raise ValueError(f"ModelConfig.{name} must be one of {choices}, got {value!r}")
 
 
+@functools.lru_cache(maxsize=None)
+def _cpu_has_native_bf16() -> bool:
+    flags: set[str] = set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    flags.update(line.split(":", 1)[1].split())
+                    break
+    except OSError:  # not Linux: no way to tell here, so no
+        return False
+    return bool(flags & {"avx512_bf16", "amx_bf16"})
+
+
+def bf16_native(device: Any) -> bool:
+    """Whether ``device`` computes bfloat16 matmuls natively (``bf16_autocast="auto"``).
+
+    CUDA: ``torch.cuda.is_bf16_supported()``. CPU: the x86 flags ``avx512_bf16`` or
+    ``amx_bf16`` (Linux ``/proc/cpuinfo``); elsewhere False (torch would emulate bf16).
+    """
+    import torch
+
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        return bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
+    if dev.type == "cpu":
+        return _cpu_has_native_bf16()
+    return False
+
+
 def model_config(
     scale: Scale, num_slots: int = 8, image_size: int | None = None, **overrides: Any
 ) -> ModelConfig:
@@ -425,10 +463,12 @@ def model_config(
             clip_to_box=True,
             # Speed knobs that pass their tolerance tests (tests/test_speed_knobs.py; speeds
             # from `python -m svorf.speedbench --scale cpu`): bf16 matmuls/activations with
-            # float32 transmittance, and per point only the slots holding 99% of the
-            # composition mass (colour error <= 0.01 per point). Not on: slot_topk (top-2 of
-            # 8 keeps ~47% of the mass at initialisation) and fg_box (changes the model).
-            bf16_autocast=True,
+            # float32 transmittance where the hardware has bf16 ("auto": 2x faster on an
+            # AVX-512 BF16 CPU, 3-5x slower where torch emulates it on AVX2), and per point
+            # only the slots holding 99% of the composition mass (colour error <= 0.01 per
+            # point). Not on: slot_topk (top-2 of 8 keeps ~47% of the mass at
+            # initialisation) and fg_box (changes the model).
+            bf16_autocast="auto",
             slot_keep_mass=0.99,
         )
         size = 64

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .compose import SlotGuidedComposer, compose, compose_density_weighted
-from .config import ModelConfig
+from .config import ModelConfig, bf16_native
 from .decoder import build_slot_module
 from .encoder import ImageEncoder
 from .field import build_fields, positional_encoding
@@ -337,7 +337,9 @@ class SVORF(nn.Module):
         return B, K, D
 
     def _autocast(self, device: torch.device):
-        if self.cfg.bf16_autocast:
+        """bf16 autocast where ``cfg.bf16_autocast`` asks for it ("auto": native bf16 only)."""
+        want = self.cfg.bf16_autocast
+        if want is True or (want == "auto" and bf16_native(device)):
             return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
         return contextlib.nullcontext()
 

@@ -52,7 +52,7 @@ import torch
 import torch.nn.functional as F
 
 from .compose import masked_softmax
-from .config import ModelConfig, model_config
+from .config import ModelConfig, bf16_native, model_config
 from .model import SVORF
 from .render import clip_rays_to_box, sample_stratified
 
@@ -370,6 +370,7 @@ def run(
         "threads": threads,
         "repeats": repeats,
         "torch": torch.__version__,
+        "bf16_native": bf16_native("cpu"),
         "config": dataclasses.asdict(model_config(scale)),  # type: ignore[arg-type]
         "variants": rows,
     }

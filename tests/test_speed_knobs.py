@@ -401,11 +401,44 @@ def test_all_knobs_extreme_inputs_are_finite():
 # ----------------------------------------------------------------------------- config
 
 
+@pytest.mark.parametrize("native", [False, True])
+def test_bf16_auto_follows_the_hardware(monkeypatch, native):
+    """"auto" = bf16 only where the CPU has it (torch emulates bf16 on AVX2: 3-5x slower);
+    True / False force it either way."""
+    import svorf.config as config_mod
+
+    monkeypatch.setattr(config_mod, "_cpu_has_native_bf16", lambda: native)
+    assert config_mod.bf16_native("cpu") is native
+    seen = {}
+    for setting in ("auto", True, False):
+        m = SVORF(model_config("smoke", bf16_autocast=setting))
+        with m._autocast(torch.device("cpu")):
+            seen[setting] = torch.is_autocast_enabled("cpu")
+    assert seen == {"auto": native, True: True, False: False}
+    with pytest.raises(ValueError, match="bf16_autocast must be true, false or 'auto'"):
+        model_config("smoke", bf16_autocast="yes")
+
+
+def test_bf16_native_reads_the_cpu_flags():
+    import svorf.config as config_mod
+
+    config_mod._cpu_has_native_bf16.cache_clear()
+    try:
+        flags = open("/proc/cpuinfo").read()
+    except OSError:
+        flags = None
+    got = config_mod._cpu_has_native_bf16()
+    if flags is None:
+        assert got is False
+    else:
+        assert got == ("avx512_bf16" in flags.split() or "amx_bf16" in flags.split())
+
+
 def test_knob_config_defaults_and_validation():
     paper = model_config("paper")
     assert all(getattr(paper, k) == v for k, v in KNOBS_OFF.items())  # paper = the method
     cpu = model_config("cpu")
-    assert cpu.bf16_autocast and cpu.slot_keep_mass == 0.99
+    assert cpu.bf16_autocast == "auto" and cpu.slot_keep_mass == 0.99
     assert cpu.slot_topk == 0 and cpu.fg_box is None  # beyond tolerance / a modelling choice
     assert model_config("cpu", bf16_autocast=False).bf16_autocast is False  # overrides win
     # selection knobs are inert (not an error) for compositions that cannot use them
