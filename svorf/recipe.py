@@ -56,6 +56,7 @@ __all__ = [
     "make_eval_fn",
     "plot_runs",
     "recipe_configs",
+    "recipe_model_levers",
     "save_segmentation_grid",
     "segmentation_metrics_basic",
     "train_eval",
@@ -88,6 +89,12 @@ _MODEL_LEVERS = (
     "coord_frame",
     "slot_locality",
 )
+
+
+def recipe_model_levers(levers: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The ModelConfig fields :data:`RECIPE_LEVERS` (with ``levers`` replacing entries) sets."""
+    lv = {**RECIPE_LEVERS, **(levers or {})}
+    return {k: lv[k] for k in _MODEL_LEVERS if k in lv}
 
 
 def recipe_configs(

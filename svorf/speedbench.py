@@ -15,6 +15,9 @@ Usage::
 
     python -m svorf.speedbench --scale cpu [--repeats 7] [--json out.json] [--no-rss]
 
+``--recipe`` applies the cpu recipe's model levers (``svorf.recipe.RECIPE_LEVERS``) to
+every variant, so the knobs are timed on the model the recipe trains.
+
 Variants: ``original`` (every knob off and the composer in its paper form
 ``SlotGuidedComposer.logits_reference``: the code before issue 6, the reference of every
 ratio), ``baseline`` (every knob off: the paper's method, with the exact folded composer),
@@ -312,7 +315,10 @@ def run(
     """Time every variant interleaved; return the JSON-able report (see module docstring)."""
     torch.set_num_threads(threads)
     variants = variants if variants is not None else default_variants(scale, sharpen)
-    state = build_model(scale, Variant("init", {}), None).state_dict()
+    # Shared initial weights: from a model with the variants' non-knob overrides (e.g. the
+    # recipe's slot_locality adds parameters), which every variant has in common.
+    common = {k: v for k, v in variants[0].overrides.items() if k not in KNOBS_OFF}
+    state = build_model(scale, Variant("init", common), None).state_dict()
     models = [build_model(scale, v, state) for v in variants]
     counters = [_KeptPairs(m) for m in models]
     batch = make_batch(models[0].cfg, scenes, rays)
@@ -372,6 +378,7 @@ def run(
         "torch": torch.__version__,
         "bf16_native": bf16_native("cpu"),
         "config": dataclasses.asdict(model_config(scale)),  # type: ignore[arg-type]
+        "base_overrides": common,
         "variants": rows,
     }
 
@@ -444,6 +451,12 @@ def main(argv: list[str] | None = None) -> int:
         help="logit scale of the sharp-m variants (1 = leave them out)",
     )
     ap.add_argument("--only", default="", help="comma-separated variant names to run")
+    ap.add_argument(
+        "--recipe",
+        action="store_true",
+        help="time the cpu recipe's model: its model levers (svorf.recipe.RECIPE_LEVERS: "
+        "slot locality, foreground box, ...) under every variant",
+    )
     ap.add_argument("--no-rss", action="store_true", help="skip the per-variant RSS subprocesses")
     ap.add_argument("--json", type=Path, default=None, help="also write the report here")
     ap.add_argument("--_rss-worker", dest="rss_worker", default=None, help=argparse.SUPPRESS)
@@ -455,6 +468,12 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(a, name) < 1:
             ap.error(f"--{name} must be >= 1, got {getattr(a, name)}")
     variants = default_variants(a.scale, a.sharpen)
+    if a.recipe:
+        from .recipe import recipe_model_levers
+
+        levers = recipe_model_levers()
+        for v in variants:  # a variant's own knob settings win over the recipe's
+            v.overrides = {**levers, **v.overrides}
     if a.only:
         wanted = [s.strip() for s in a.only.split(",") if s.strip()]
         known = {v.name for v in variants}
