@@ -509,3 +509,17 @@ def test_speedbench_report_table_and_json(tmp_path):
     assert data["variants"][1]["peak_rss_mb"] > 50
     with pytest.raises(SystemExit):
         speedbench.main(["--only", "nonsense", "--no-rss"])
+    # --recipe: every variant is the recipe's model (slot locality, foreground box, ...).
+    out2 = tmp_path / "recipe.json"
+    small = ["--scale", "smoke", "--scenes", "1", "--rays", "4", "--repeats", "1"]
+    rc = speedbench.main(
+        small + ["--warmup", "0", "--threads", "1", "--no-rss", "--recipe", "--only", "keep_mass=0.99"]
+        + ["--json", str(out2)]
+    )
+    assert rc == 0
+    rec = json.loads(out2.read_text())
+    from svorf.recipe import recipe_model_levers
+
+    assert rec["base_overrides"]["slot_locality"] == recipe_model_levers()["slot_locality"]
+    assert all(r["overrides"]["slot_locality"] for r in rec["variants"])
+    assert rec["variants"][0]["rgb_max_err"] == 0.0
