@@ -416,6 +416,11 @@ def bf16_native(device: Any) -> bool:
     return False
 
 
+def bf16_autocast_on(setting: bool | str, device: Any) -> bool:
+    """Whether ``ModelConfig.bf16_autocast = setting`` runs bf16 autocast on ``device``."""
+    return setting is True or (setting == "auto" and bf16_native(device))
+
+
 def model_config(
     scale: Scale, num_slots: int = 8, image_size: int | None = None, **overrides: Any
 ) -> ModelConfig:

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .compose import SlotGuidedComposer, compose, compose_density_weighted
-from .config import ModelConfig, bf16_native
+from .config import ModelConfig, bf16_autocast_on
 from .decoder import build_slot_module
 from .encoder import ImageEncoder
 from .field import build_fields, positional_encoding
@@ -338,8 +338,7 @@ class SVORF(nn.Module):
 
     def _autocast(self, device: torch.device):
         """bf16 autocast where ``cfg.bf16_autocast`` asks for it ("auto": native bf16 only)."""
-        want = self.cfg.bf16_autocast
-        if want is True or (want == "auto" and bf16_native(device)):
+        if bf16_autocast_on(self.cfg.bf16_autocast, device):
             return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
         return contextlib.nullcontext()
 

@@ -51,7 +51,7 @@ from torch import Tensor
 
 from scenefmt import atomic_write_bytes, atomic_write_json
 from svorf import distributed
-from svorf.config import ModelConfig, model_config
+from svorf.config import ModelConfig, bf16_autocast_on, model_config
 from svorf.data import RAY_SAMPLING, MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
 
@@ -579,7 +579,8 @@ def train(
     Returns:
         Run summary: ``steps``, ``start_step``, ``final_loss``, ``wall_s`` (this call),
         ``train_wall_s`` (all calls), ``s_per_step``, ``peak_rss_mb``, ``params``,
-        ``device``, ``checkpoint``, ``log``, ``dataset_fingerprint``.
+        ``device``, ``bf16_autocast_active``, ``checkpoint``, ``log``,
+        ``dataset_fingerprint``.
 
     Under ``torchrun`` (an initialised process group of W > 1 ranks) every rank calls
     this with the same arguments: each trains on ``batch_scenes / W`` scenes of every
@@ -849,6 +850,8 @@ def train(
         "peak_rss_mb": round(_peak_rss_mb(), 1),
         "params": model.count_parameters(),
         "device": str(device),
+        # What bf16_autocast resolved to on this device ("auto": native bf16 only).
+        "bf16_autocast_active": bf16_autocast_on(model_cfg.bf16_autocast, device),
         "checkpoint": str(ckpt_path),
         "log": str(log_path),
         "dataset_fingerprint": dataset.fingerprint,

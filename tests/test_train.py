@@ -84,6 +84,7 @@ def test_smoke_training_lowers_loss_and_writes_a_run(split, tmp_path):
     summary = train(split, run, MCFG, cfg, eval_data=split, eval_fn=eval_fn, progress=False)
     assert summary["steps"] == 30 and summary["params"] == SVORF(MCFG).count_parameters()
     assert summary["peak_rss_mb"] > 0 and summary["s_per_step"] > 0
+    assert summary["bf16_autocast_active"] is False  # the smoke config keeps float32
     log = _log(run)
     assert [r["step"] for r in log] == list(range(1, 31))
     assert {"loss", "lr", "wall_s", "parts", "steps_per_s"} <= set(log[0])
