@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 
 import pytest
-import ray
 
 from benchmark.cli import main as cli_main
 from benchmark.ray_jobs import cpus_per_task
@@ -46,18 +45,6 @@ def _measured(report):
         for r in report["rows"]
         if r["source"] == "measured" and r["table"] == "tab:ablation"
     }
-
-
-@pytest.fixture(scope="module")
-def ray_cluster():
-    ray.init(
-        num_cpus=2,
-        include_dashboard=False,
-        log_to_driver=False,
-        object_store_memory=80 * 1024 * 1024,
-    )
-    yield ray
-    ray.shutdown()
 
 
 @pytest.mark.timeout(300)

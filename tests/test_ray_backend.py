@@ -21,19 +21,6 @@ def _gen(out, n=2, **kw):
     return generate_dataset(GenerateConfig(n=n, out=out, **{**KW, **kw}))
 
 
-@pytest.fixture(scope="module")
-def ray_cluster():
-    ray = pytest.importorskip("ray", reason="the ray extra is part of .[test]")
-    ray.init(
-        num_cpus=2,
-        include_dashboard=False,
-        log_to_driver=False,
-        object_store_memory=80 * 1024 * 1024,
-    )
-    yield ray
-    ray.shutdown()
-
-
 @pytest.mark.blender
 @pytest.mark.timeout(240)
 @pytest.mark.skipif(not bpy_available(), reason="bpy not installed")
