@@ -6,7 +6,9 @@ optionally resized to the training resolution, and caches one ray per pixel per
 view. :class:`RaySampler` draws the training batches of the paper's setup (one input
 view per scene, ``R`` random rays from the scene's other views), the pixels picked by a
 strategy of :data:`RAY_SAMPLING` (``"uniform"`` = paper; ``"object_heavy"`` = label-free,
-half the rays from pixels far from the image's median colour).
+half the rays from pixels far from the image's median colour; ``"error_driven"`` =
+label-free, half the rays from image tiles in proportion to the model's recent error
+there, kept by an :class:`ErrorMap`).
 
 Conventions (all tensors are float32 unless said otherwise):
 
@@ -45,6 +47,7 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -65,9 +68,11 @@ __all__ = [
     "RAY_SAMPLING",
     "UORF_FOV_DEG",
     "DatasetError",
+    "ErrorMap",
     "MultiViewDataset",
     "RayBatch",
     "RaySampler",
+    "STATEFUL_RAY_SAMPLING",
     "SceneViews",
     "dataset_fingerprint",
     "object_heavy_rays",
@@ -668,11 +673,135 @@ def object_heavy_rays(
     return torch.cat([picked, rest])
 
 
+#: Defaults of the "error_driven" strategy (see :class:`ErrorMap`).
+ERROR_DRIVEN_FRACTION = 0.5
+ERROR_DRIVEN_TILE = 4
+ERROR_DRIVEN_EMA = 0.5
+ERROR_DRIVEN_INIT = 1.0
+
+
+class ErrorMap:
+    """Label-free error-driven ray sampling: the model's recent error per image tile.
+
+    Every view of every training scene is cut into ``tile x tile`` pixel tiles; each tile
+    holds an error estimate, initially ``init`` (far above any photometric error of
+    colours in [0, 1], so tiles never visited are drawn first: the first sweep covers the
+    images like uniform sampling). After every training step :meth:`update` blends the
+    mean squared colour error of the rays that fell in a tile into it
+    (``e <- (1 - ema) * e + ema * mean``). :meth:`draw` takes ``round(fraction * n)``
+    rays from tiles in proportion to their error (a uniform pixel inside the drawn tile)
+    and the rest uniformly from every pixel, so no pixel's probability drops to 0.
+
+    Only the rendered colours enter (no masks, depth or counts): training stays
+    unsupervised. The state is part of a training checkpoint (:meth:`state_dict`), so a
+    resumed run draws the same rays as an uninterrupted one.
+
+    Args:
+        n_scenes, n_views, image_hw: the dataset's shape.
+        tile: tile side in pixels (tiles at the right/bottom edge may be partial).
+        fraction: share of the rays drawn by error.
+        ema: weight of a step's error in a tile's estimate, in (0, 1].
+        init: initial estimate of every tile.
+    """
+
+    def __init__(
+        self,
+        n_scenes: int,
+        n_views: int,
+        image_hw: tuple[int, int],
+        *,
+        tile: int = ERROR_DRIVEN_TILE,
+        fraction: float = ERROR_DRIVEN_FRACTION,
+        ema: float = ERROR_DRIVEN_EMA,
+        init: float = ERROR_DRIVEN_INIT,
+    ) -> None:
+        if tile < 1:
+            raise ValueError(f"ErrorMap: tile must be >= 1 pixel, got {tile}")
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"ErrorMap: fraction must be in [0, 1], got {fraction}")
+        if not 0.0 < ema <= 1.0:
+            raise ValueError(f"ErrorMap: ema must be in (0, 1], got {ema}")
+        if not (init > 0 and math.isfinite(init)):
+            raise ValueError(f"ErrorMap: init must be a finite value > 0, got {init}")
+        self.h, self.w = int(image_hw[0]), int(image_hw[1])
+        self.tile, self.fraction, self.ema = int(tile), float(fraction), float(ema)
+        self.th, self.tw = -(-self.h // self.tile), -(-self.w // self.tile)
+        self.err = torch.full((n_scenes, n_views, self.th * self.tw), float(init))
+
+    def _tile_of(self, pixel: Tensor) -> Tensor:
+        """Tile index of flat pixel indices ``y * W + x``."""
+        y, x = pixel // self.w, pixel % self.w
+        return (y // self.tile) * self.tw + x // self.tile
+
+    def draw(self, scene: int, views: Tensor, n: int, generator: torch.Generator) -> Tensor:
+        """``n`` flat indices into ``len(views) * H * W`` (the ray-sampling contract).
+
+        Args:
+            scene: dataset position.
+            views: int64 [Vt] candidate view indices of the scene.
+            n: rays to draw.
+        """
+        hw = self.h * self.w
+        n_err = round(self.fraction * n)
+        weights = self.err[scene, views].reshape(-1).clamp_min(1e-12)  # [Vt * T]
+        picked = torch.multinomial(weights, n_err, replacement=True, generator=generator)
+        vi, t = picked // (self.th * self.tw), picked % (self.th * self.tw)
+        ty, tx = t // self.tw, t % self.tw
+        # a uniform pixel of the tile (partial edge tiles: clamp to the image)
+        dy = torch.randint(0, self.tile, (n_err,), generator=generator)
+        dx = torch.randint(0, self.tile, (n_err,), generator=generator)
+        y = (ty * self.tile + dy).clamp_max(self.h - 1)
+        x = (tx * self.tile + dx).clamp_max(self.w - 1)
+        rest = torch.randint(0, len(views) * hw, (n - n_err,), generator=generator)
+        return torch.cat([vi * hw + y * self.w + x, rest])
+
+    @torch.no_grad()
+    def update(self, scenes: Tensor, views: Tensor, pixels: Tensor, sq_err: Tensor) -> None:
+        """Blend the rays' errors into their tiles.
+
+        Args:
+            scenes: int64 [B] dataset positions of the batch rows.
+            views: int64 [B, R] view of each ray (``RayBatch.target_view``).
+            pixels: int64 [B, R] flat pixel of each ray (``RayBatch.target_pixel``).
+            sq_err: [B, R] squared colour error of each ray (mean over channels).
+        """
+        sq_err = sq_err.detach().float().cpu()
+        if not bool(torch.isfinite(sq_err).all()):
+            return  # a diverging step is reported by the trainer; keep the estimates
+        n_tiles = self.th * self.tw
+        flat = (
+            scenes.cpu().reshape(-1, 1) * self.err.shape[1] + views.cpu()
+        ) * n_tiles + self._tile_of(pixels.cpu())
+        flat = flat.reshape(-1)
+        e = self.err.view(-1)
+        sums = torch.zeros_like(e).index_add_(0, flat, sq_err.reshape(-1))
+        cnt = torch.zeros_like(e).index_add_(0, flat, torch.ones(flat.shape[0]))
+        hit = cnt > 0
+        e[hit] = (1.0 - self.ema) * e[hit] + self.ema * sums[hit] / cnt[hit]
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"err": self.err.clone(), "tile": self.tile}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        err = state["err"]
+        if tuple(err.shape) != tuple(self.err.shape) or int(state["tile"]) != self.tile:
+            raise ValueError(
+                f"ErrorMap: saved map {tuple(err.shape)} (tile {state['tile']}) does not fit "
+                f"this dataset {tuple(self.err.shape)} (tile {self.tile})"
+            )
+        self.err.copy_(err)
+
+
 #: Registry of ray-sampling strategies by name (``TrainConfig.ray_sampling``).
+#: ``"error_driven"`` is stateful: :class:`RaySampler` draws it from its :class:`ErrorMap`
+#: (the trainer feeds the map); called as a plain function it is uniform sampling.
 RAY_SAMPLING: dict[str, RaySamplingFn] = {
     "uniform": _uniform_rays,
     "object_heavy": object_heavy_rays,
+    "error_driven": _uniform_rays,
 }
+#: Strategies that need an :class:`ErrorMap` fed with each step's per-ray errors.
+STATEFUL_RAY_SAMPLING = frozenset({"error_driven"})
 
 
 def register_ray_sampling(name: str, fn: RaySamplingFn) -> None:
@@ -726,6 +855,8 @@ class RaySampler:
         rays_per_scene: R (paper: 64).
         nvs: novel-view setup (``ModelConfig.nvs``).
         ray_sampling: strategy name.
+        error_map: the :class:`ErrorMap` of ``"error_driven"`` (shared by the samplers of
+            one run); made here when None.
     """
 
     def __init__(
@@ -735,6 +866,7 @@ class RaySampler:
         *,
         nvs: bool = True,
         ray_sampling: str = "uniform",
+        error_map: ErrorMap | None = None,
     ) -> None:
         if rays_per_scene < 1:
             raise ValueError(f"rays_per_scene must be >= 1, got {rays_per_scene}")
@@ -751,6 +883,11 @@ class RaySampler:
         self.nvs = nvs
         self.ray_sampling = ray_sampling
         self._fn = RAY_SAMPLING[ray_sampling]
+        self.error_map: ErrorMap | None = None
+        if ray_sampling in STATEFUL_RAY_SAMPLING:
+            self.error_map = error_map or ErrorMap(
+                len(dataset), dataset.n_views, dataset.image_hw
+            )
 
     def sample_scenes(self, batch_scenes: int, generator: torch.Generator) -> Tensor:
         """[B] distinct scene positions (with replacement only if B > len(dataset))."""
@@ -783,7 +920,10 @@ class RaySampler:
                 views = torch.tensor([v for v in range(v_all) if v != iv])
             else:
                 views = torch.tensor([iv])
-            flat = self._fn(ds._rgb[s][views], r, generator)
+            if self.error_map is not None:
+                flat = self.error_map.draw(s, views, r, generator)
+            else:
+                flat = self._fn(ds._rgb[s][views], r, generator)
             vsel = views[flat // (h * w)]
             pix = flat % (h * w)
             out["images"].append(ds.images(s, [iv])[0])

@@ -110,7 +110,10 @@ class TrainConfig:
     seed: int = 0
     """Seeds parameter init, data sampling and the model's own randomness."""
     ray_sampling: str = "uniform"
-    """Ray-sampling strategy, a name in ``svorf.data.RAY_SAMPLING``; "uniform" = paper."""
+    """Ray-sampling strategy, a name in ``svorf.data.RAY_SAMPLING``; "uniform" = paper,
+    "object_heavy" (cpu scale) = half the rays from salient pixels, "error_driven" = half
+    the rays from image tiles in proportion to the model's recent error there
+    (``svorf.data.ErrorMap``; label-free, its state is checkpointed)."""
     nvs_warmup: int = 0
     """Input-view reconstruction warm-up (cpu recipe, docs/cpu_recipe.md): for the first
     this many steps the target rays come from the input view itself, afterwards from the
@@ -621,7 +624,17 @@ def train(
     sampler_warm = sampler
     if train_cfg.nvs_warmup and model_cfg.nvs:
         sampler_warm = RaySampler(
-            dataset, train_cfg.rays_per_scene, nvs=False, ray_sampling=train_cfg.ray_sampling
+            dataset,
+            train_cfg.rays_per_scene,
+            nvs=False,
+            ray_sampling=train_cfg.ray_sampling,
+            error_map=sampler.error_map,
+        )
+    error_map = sampler.error_map  # "error_driven": fed with every step's per-ray errors
+    if error_map is not None and dctx is not None:
+        raise ValueError(
+            f"ray_sampling={train_cfg.ray_sampling!r} keeps per-process error maps and is not "
+            f"supported under torchrun; use 'object_heavy' or 'uniform' there"
         )
     data_info = {
         "fingerprint": dataset.fingerprint,
@@ -671,6 +684,8 @@ def train(
             model.load_state_dict(ckpt["model"])
             opt.load_state_dict(ckpt["optimizer"])
             _set_rng_state(ckpt["rng"], gen, device)
+            if error_map is not None and "error_map" in ckpt:
+                error_map.load_state_dict(ckpt["error_map"])
         except (RuntimeError, ValueError, KeyError, TypeError) as e:
             raise CheckpointError(
                 f"{ckpt_path}: cannot restore the checkpoint ({_first_line(e)[:160]})"
@@ -709,6 +724,7 @@ def train(
                 "wall_s": wall,
                 "loss": last_loss,
                 "torch_version": str(torch.__version__),
+                **({"error_map": error_map.state_dict()} if error_map is not None else {}),
             },
             ckpt_path,
         )
@@ -779,6 +795,13 @@ def train(
                     input_c2w=batch.input_c2w,
                 )
                 loss, parts = model.loss(out_r, batch.target_rgb)
+            if error_map is not None:
+                error_map.update(
+                    batch.scenes,
+                    batch.target_view,
+                    batch.target_pixel,
+                    (out_r.rgb.detach() - batch.target_rgb).pow(2).mean(-1),
+                )
             done = step + 1
             if dctx is not None:
                 opt.zero_grad(set_to_none=True)

@@ -12,6 +12,7 @@ from scenefmt import SplitLayout, read_json
 from svorf.data import (
     RAY_SAMPLING,
     DatasetError,
+    ErrorMap,
     MultiViewDataset,
     RaySampler,
     dataset_fingerprint,
@@ -223,3 +224,68 @@ def test_synthetic_split_is_deterministic(tmp_path):
     manifest = read_json(a / "manifest.json")
     assert manifest["n_scenes"] == 1 and manifest["n_views"] == 4
     assert read_json(a / "sc0000.json")["camera_convention"] == "opencv"
+
+
+# --------------------------------------------------------------------------- error-driven rays
+
+
+def test_error_map_draws_in_proportion_to_tile_error():
+    em = ErrorMap(3, 4, (10, 12), tile=4, fraction=0.75, ema=0.5)
+    assert em.err.shape == (3, 4, 3 * 3)  # ceil(10/4) x ceil(12/4) tiles, partial at the edges
+    em.err.fill_(1e-9)
+    em.err[1, 2, 5] = 1.0  # view 2, tile row 1, tile col 2 -> y in [4, 8), x in [8, 12)
+    views = torch.tensor([0, 2, 3])  # view 2 is candidate position 1
+    g = torch.Generator().manual_seed(0)
+    flat = em.draw(1, views, 400, g)
+    assert flat.shape == (400,) and flat.dtype == torch.int64
+    assert int(flat.min()) >= 0 and int(flat.max()) < 3 * 10 * 12
+    by_err, rest = flat[:300], flat[300:]
+    assert bool((by_err // 120 == 1).all())
+    y, x = (by_err % 120) // 12, by_err % 12
+    assert bool(((y >= 4) & (y < 8) & (x >= 8) & (x < 12)).all())
+    assert len(set((rest // 120).tolist())) == 3  # the uniform share reaches every view
+    # the bottom tile row is partial (rows 8..9 of 10): drawn pixels stay in the image
+    em.err.fill_(1e-9)
+    em.err[0, 0, 7] = 1.0
+    flat = em.draw(0, torch.tensor([0]), 200, g)[:150]
+    assert int((flat // 12).max()) <= 9 and int((flat // 12).min()) >= 8
+    same = em.draw(0, torch.tensor([0]), 200, torch.Generator().manual_seed(5))
+    assert torch.equal(same, em.draw(0, torch.tensor([0]), 200, torch.Generator().manual_seed(5)))
+
+
+def test_error_map_update_blends_the_mean_error_of_each_tile():
+    em = ErrorMap(2, 2, (8, 8), tile=4, ema=0.25, init=1.0)
+    scenes = torch.tensor([1, 0])
+    views = torch.tensor([[1, 1, 0], [0, 0, 0]])
+    pixels = torch.tensor([[0, 9, 63], [4, 4, 36]])  # (0,0),(1,1) tile 0; (7,7) tile 3; ...
+    err = torch.tensor([[0.2, 0.4, 0.8], [0.6, 1.0, 0.1]])
+    em.update(scenes, views, pixels, err)
+    expect = torch.ones(2, 2, 4)
+    expect[1, 1, 0] = 0.75 + 0.25 * 0.3  # two rays in one tile: their mean
+    expect[1, 0, 3] = 0.75 + 0.25 * 0.8
+    expect[0, 0, 1] = 0.75 + 0.25 * 0.8  # pixel 4 = (0, 4): tile col 1
+    expect[0, 0, 3] = 0.75 + 0.25 * 0.1  # pixel 36 = (4, 4)
+    torch.testing.assert_close(em.err, expect)
+    em.update(scenes, views, pixels, torch.full((2, 3), float("nan")))  # ignored
+    torch.testing.assert_close(em.err, expect)
+    other = ErrorMap(2, 2, (8, 8), tile=4)
+    other.load_state_dict(em.state_dict())
+    assert torch.equal(other.err, em.err)
+    with pytest.raises(ValueError, match="does not fit"):
+        ErrorMap(3, 2, (8, 8), tile=4).load_state_dict(em.state_dict())
+    for bad in ({"tile": 0}, {"fraction": 1.5}, {"ema": 0.0}, {"init": 0.0}):
+        with pytest.raises(ValueError, match="ErrorMap"):
+            ErrorMap(1, 1, (4, 4), **bad)
+
+
+def test_error_driven_sampler_shares_one_map_and_stays_in_the_target_views(ds):
+    sampler = RaySampler(ds, rays_per_scene=32, nvs=True, ray_sampling="error_driven")
+    assert sampler.error_map is not None and "error_driven" in RAY_SAMPLING
+    warm = RaySampler(ds, 32, nvs=False, ray_sampling="error_driven", error_map=sampler.error_map)
+    assert warm.error_map is sampler.error_map
+    assert RaySampler(ds, 32, ray_sampling="object_heavy").error_map is None
+    g = torch.Generator().manual_seed(1)
+    b = sampler.sample(torch.tensor([0, 1]), g)
+    assert bool((b.target_view != b.input_view[:, None]).all())  # novel views only
+    w = warm.sample(torch.tensor([1]), g)
+    assert bool((w.target_view == w.input_view[:, None]).all())

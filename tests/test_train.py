@@ -111,19 +111,29 @@ def test_smoke_training_lowers_loss_and_writes_a_run(split, tmp_path):
     assert not any(math.isnan(v) for v in metrics.values())
 
 
-def test_resume_matches_an_uninterrupted_run(split, tmp_path):
+@pytest.mark.parametrize("ray_sampling", ["uniform", "error_driven"])
+def test_resume_matches_an_uninterrupted_run(split, tmp_path, ray_sampling):
     # The uninterrupted run also evaluates: evaluation must not disturb the RNG streams.
+    # "error_driven" also carries its error map across the interruption.
+    rs = {"ray_sampling": ray_sampling}
     full = tmp_path / "full"
-    train(split, full, MCFG, tcfg(eval_every=2, eval_scenes=1), eval_data=split, progress=False)
+    train(split, full, MCFG, tcfg(eval_every=2, eval_scenes=1, **rs), eval_data=split,
+          progress=False)  # fmt: skip
     part = tmp_path / "part"
-    train(split, part, MCFG, tcfg(steps=3), progress=False)
+    train(split, part, MCFG, tcfg(steps=3, **rs), progress=False)
     # A crash after the checkpoint may leave log lines past it: resume drops them.
     with open(part / "log.jsonl", "a") as f:
         f.write(json.dumps({"step": 4, "loss": 1.0}) + "\n")
-    train(split, part, MCFG, tcfg(steps=6), resume=True, progress=False)
+    train(split, part, MCFG, tcfg(steps=6, **rs), resume=True, progress=False)
     a = torch.load(full / "checkpoint.pt", weights_only=True)
     b = torch.load(part / "checkpoint.pt", weights_only=True)
     assert a["step"] == b["step"] == 6
+    if ray_sampling == "error_driven":
+        err = a["error_map"]["err"]
+        assert torch.equal(err, b["error_map"]["err"])
+        assert 0 < int((err < 1.0).sum()) < err.numel()  # fed by training, not everywhere
+    else:
+        assert "error_map" not in a
     for k, v in a["model"].items():
         assert torch.equal(v, b["model"][k]), k
     la, lb = _log(full), _log(part)
