@@ -186,6 +186,31 @@ class ModelConfig:
     saving grows as m sharpens during training (at initialisation m is nearly uniform and
     nearly every slot is kept). slot_guided only, ignored otherwise. 1.0 = off (paper)."""
 
+    # ---- evaluation-only speed knobs (DESIGN 8 "skip what a scene does not need"): read only
+    # on the evaluation render path (no gradient, deterministic samples: ``render_chunked``,
+    # ``predict_scene``), never in training; measured by ``benchmark run tradeoff``. Left out
+    # of ``to_dict`` while off, so run keys and saved configs of earlier runs are unchanged ----
+    eval_early_stop: float | None = None
+    """Early ray termination at evaluation: the samples of each pass are marched in
+    ``4`` segments along the ray, and a sample is evaluated only while the ray's
+    transmittance in front of it (log space, float32, from the samples already evaluated,
+    coarse and fine merged in the fine pass) is >= this threshold; later samples get
+    density 0 (their composition masks m are copied from the ray's last evaluated sample,
+    so slot_probs stay a distribution). The colour the skipped samples would add is at most
+    the transmittance left, < threshold per channel, in the pass that skipped them (the
+    fine pass's importance sampling sees the coarse result, so the final bound is close to,
+    not exactly, the threshold: tests/test_eval_knobs.py states the tolerance). None = off:
+    every sample evaluated, the exact path (paper)."""
+    eval_fine_min_weight: float | None = None
+    """Fine samples only where the coarse weights are non-negligible, at evaluation: a fine
+    (importance) sample is evaluated only if the coarse weight w_i of the coarse bin it was
+    drawn from is >= this value; the others are dropped from the union of samples (placed
+    as zero-length duplicates of their bin's coarse sample, which renders exactly as
+    without them). The coarse pass still covers the whole ray, so empty space keeps its
+    coarse estimate and only the refinement there is skipped. Bins with w_i < 1/n_fine
+    receive at most about one fine sample, so thresholds below that save little. None =
+    off: every fine sample evaluated (paper)."""
+
     # ---- cpu-scale training recipe (docs/cpu_recipe.md; all off at paper scale) ----
     fg_zmin: float | None = None
     """If set, foreground (object) slots have density 0 and composition weight 0 below the
@@ -344,15 +369,22 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.slot_keep_mass must be in (0, 1] (1 = off), got {self.slot_keep_mass}"
             )
+        for name in ("eval_early_stop", "eval_fine_min_weight"):
+            v = getattr(self, name)
+            if v is not None and not 0.0 < v < 1.0:
+                raise ValueError(f"ModelConfig.{name} must be in (0, 1) or None (off), got {v!r}")
         if self.slot_attn_iters < 1:
             raise ValueError(
                 f"ModelConfig.slot_attn_iters must be >= 1, got {self.slot_attn_iters}"
             )
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able dict (tuples become lists)."""
+        """Plain JSON-able dict (tuples become lists; the eval-only knobs only when set)."""
         d = dataclasses.asdict(self)
         d["enc_blocks"] = list(self.enc_blocks)
+        for name in _EVAL_ONLY:  # off: not written, so keys of earlier runs stay valid
+            if d[name] is None:
+                del d[name]
         return d
 
     @classmethod
@@ -378,6 +410,10 @@ class ModelConfig:
     def replace(self, **changes: Any) -> ModelConfig:
         """A copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
+
+
+#: Fields read only at evaluation (no effect on training): left out of ``to_dict`` while off.
+_EVAL_ONLY = ("eval_early_stop", "eval_fine_min_weight")
 
 
 def _check_choice(name: str, value: object, literal: object) -> None:

@@ -1,0 +1,190 @@
+"""Evaluation-only speed knobs of the model (DESIGN 8: "early termination of opaque rays at
+evaluation", fine samples only where the coarse weights are non-negligible):
+``ModelConfig.eval_early_stop`` and ``ModelConfig.eval_fine_min_weight``.
+
+Off is the exact path; on stays within a stated tolerance of it on a small random model
+(whose init densities make rays opaque within the box, so early termination does skip
+samples); slot_probs stay a distribution; nothing is NaN; training never sees the knobs.
+Their time-vs-error curve on trained weights is ``benchmark run tradeoff`` (render curve).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+import svorf.model as model_mod
+from svorf.config import ModelConfig, model_config
+from svorf.model import SVORF
+
+#: Stated tolerances on the smoke model below (colour units / world units / probability).
+#: eval_early_stop=t bounds the skipped colour by about t per pass (ModelConfig docstring).
+TOL_STOP = {"rgb": 0.02, "depth": 0.05, "probs": 0.02}
+TOL_MINW = {"rgb": 0.05, "depth": 0.3, "probs": 0.05}
+
+
+def _setup(num_slots: int = 4, rays: int = 96, seed: int = 0):
+    torch.manual_seed(seed)
+    cfg = model_config("smoke", num_slots=num_slots)
+    model = SVORF(cfg).eval()
+    imgs = torch.rand(2, 3, 32, 32)
+    o = torch.tensor([0.0, -12.0, 6.0]).expand(2, rays, 3)
+    d = F.normalize(-o + 0.3 * torch.randn(2, rays, 3), dim=-1)
+    with torch.no_grad():
+        slots = model.encode(imgs)
+    return cfg, model, slots, o, d
+
+
+def _with(model: SVORF, **knobs) -> SVORF:
+    m = SVORF(model.cfg.replace(**knobs)).eval()
+    m.load_state_dict(model.state_dict())
+    return m
+
+
+def _errors(a, b) -> dict[str, float]:
+    return {
+        "rgb": float((a.rgb - b.rgb).abs().max()),
+        "depth": float((a.depth - b.depth).abs().mean()),
+        "probs": float((a.slot_probs - b.slot_probs).abs().max()),
+    }
+
+
+def _check_distribution(out, slot_mask=None) -> None:
+    for x in (out.rgb, out.depth, out.acc, out.slot_probs, out.coarse_rgb):
+        assert torch.isfinite(x).all()
+    s = out.slot_probs.sum(-1)
+    assert (out.slot_probs >= 0).all()
+    assert torch.allclose(s, torch.ones_like(s), atol=1e-5)
+    assert (out.acc <= 1 + 1e-5).all()
+    if slot_mask is not None:
+        assert (out.slot_probs[~slot_mask[:, None].expand_as(out.slot_probs)] == 0).all()
+
+
+def test_defaults_off_and_not_saved():
+    cfg = model_config("smoke")
+    assert cfg.eval_early_stop is None and cfg.eval_fine_min_weight is None
+    d = cfg.to_dict()  # off: not written, so run keys of earlier runs stay valid
+    assert "eval_early_stop" not in d and "eval_fine_min_weight" not in d
+    on = cfg.replace(eval_early_stop=0.01, eval_fine_min_weight=0.05)
+    assert ModelConfig.from_dict(on.to_dict()) == on
+    assert ModelConfig.from_dict(d) == cfg
+
+
+@pytest.mark.parametrize("name", ["eval_early_stop", "eval_fine_min_weight"])
+@pytest.mark.parametrize("bad", [0.0, 1.0, -0.1, 2.0])
+def test_bad_values_name_the_field(name, bad):
+    with pytest.raises(ValueError, match=name):
+        model_config("smoke", **{name: bad})
+
+
+def test_off_is_bit_identical():
+    _, model, slots, o, d = _setup()
+    base = model.render_chunked(slots, o, d)
+    again = _with(model, eval_early_stop=None, eval_fine_min_weight=None).render_chunked(
+        slots, o, d
+    )
+    for n in ("rgb", "depth", "acc", "slot_probs", "coarse_rgb"):
+        assert torch.equal(getattr(base, n), getattr(again, n)), n
+
+
+def test_training_path_ignores_the_knobs():
+    """With gradients or perturbed samples the knobs are off: the training forward is
+    bit-identical to the model without them."""
+    _, model, slots, o, d = _setup()
+    on = _with(model, eval_early_stop=0.5, eval_fine_min_weight=0.5)
+    for perturb in (False, True):
+        torch.manual_seed(1)
+        a = model.render_rays(slots, o, d, perturb=perturb)
+        torch.manual_seed(1)
+        b = on.render_rays(slots, o, d, perturb=perturb)
+        assert torch.equal(a.rgb, b.rgb) and torch.equal(a.slot_probs, b.slot_probs)
+    with torch.no_grad():  # evaluation, but perturbed samples: still off
+        torch.manual_seed(2)
+        a = model.render_rays(slots, o, d, perturb=True)
+        torch.manual_seed(2)
+        b = on.render_rays(slots, o, d, perturb=True)
+    assert torch.equal(a.rgb, b.rgb)
+
+
+def _count_evaluated(monkeypatch) -> list[float]:
+    seen: list[float] = []
+    orig = model_mod.SVORF._query_subset
+
+    def spy(self, ctx, t, keep):
+        seen.append(float(keep.float().mean()))
+        return orig(self, ctx, t, keep)
+
+    monkeypatch.setattr(model_mod.SVORF, "_query_subset", spy)
+    return seen
+
+
+@pytest.mark.parametrize("stop", [1e-3, 1e-2])
+def test_early_stop_skips_samples_within_tolerance(stop, monkeypatch):
+    _, model, slots, o, d = _setup()
+    base = model.render_chunked(slots, o, d)
+    seen = _count_evaluated(monkeypatch)
+    out = _with(model, eval_early_stop=stop).render_chunked(slots, o, d)
+    assert min(seen) < 1.0  # some samples were not evaluated
+    err = _errors(out, base)
+    assert all(err[k] <= TOL_STOP[k] for k in err), err
+    _check_distribution(out)
+
+
+def test_early_stop_error_grows_with_the_threshold():
+    _, model, slots, o, d = _setup()
+    base = model.render_chunked(slots, o, d)
+    errs = [
+        _errors(_with(model, eval_early_stop=s).render_chunked(slots, o, d), base)["rgb"]
+        for s in (1e-3, 0.1, 0.5)
+    ]
+    assert errs[0] <= errs[1] <= errs[2] and errs[2] > 0
+
+
+def test_fine_min_weight_within_tolerance(monkeypatch):
+    _, model, slots, o, d = _setup()
+    base = model.render_chunked(slots, o, d)
+    seen = _count_evaluated(monkeypatch)
+    out = _with(model, eval_fine_min_weight=0.2).render_chunked(slots, o, d)
+    assert min(seen) < 1.0
+    err = _errors(out, base)
+    assert all(err[k] <= TOL_MINW[k] for k in err), err
+    _check_distribution(out)
+
+
+def test_fine_min_weight_dropping_every_fine_sample_is_the_coarse_render():
+    """A dropped fine sample is a zero-length duplicate of its bin's coarse sample: with
+    every one dropped, the fine render equals the coarse render."""
+    _, model, slots, o, d = _setup()
+    out = _with(model, eval_fine_min_weight=0.999).render_chunked(slots, o, d)
+    assert torch.allclose(out.rgb, out.coarse_rgb, atol=1e-6)
+    with torch.no_grad():
+        coarse_only = _with(model, n_fine=0).render_rays(slots, o, d)
+    assert torch.allclose(out.depth, coarse_only.depth, atol=1e-4)
+    assert torch.allclose(out.slot_probs, coarse_only.slot_probs, atol=1e-5)
+
+
+def test_both_knobs_with_a_slot_mask_and_chunks():
+    _, model, slots, o, d = _setup(num_slots=5)
+    mask = torch.tensor([[True, False, True, True, True], [True, True, False, True, True]])
+    base = model.render_chunked(slots, o, d, chunk=40, slot_mask=mask)
+    out = _with(model, eval_early_stop=1e-2, eval_fine_min_weight=0.05).render_chunked(
+        slots, o, d, chunk=40, slot_mask=mask
+    )
+    _check_distribution(out, mask)
+    err = _errors(out, base)
+    assert all(err[k] <= TOL_MINW[k] for k in err), err
+
+
+def test_opaque_at_the_first_sample_no_nan():
+    """Densities at the bound (sigma_max) everywhere: every ray stops after the first
+    segment; nothing is NaN and the colour equals the exact render's."""
+    _, model, slots, o, d = _setup()
+    with torch.no_grad():
+        for p in model.fields.parameters():
+            p.mul_(30.0)
+    base = model.render_chunked(slots, o, d)
+    out = _with(model, eval_early_stop=1e-3, eval_fine_min_weight=0.1).render_chunked(slots, o, d)
+    _check_distribution(out)
+    assert torch.isfinite(base.rgb).all()
+    assert float((out.rgb - base.rgb).abs().max()) <= TOL_MINW["rgb"]
