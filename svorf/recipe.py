@@ -13,6 +13,7 @@ The levers (every one a documented config field that the paper scale leaves off)
 lever               field                                        paper value
 ==================  ===========================================  =========================
 object-heavy rays   ``TrainConfig.ray_sampling="object_heavy"``  "uniform"
+error-driven rays   ``ray_sampling="error_driven"`` (ErrorMap)   "uniform" (lever row)
 input-view warm-up  ``TrainConfig.nvs_warmup``                   0
 learning rate       ``TrainConfig.lr`` / ``warmup``              1e-4 / 1000
 batch shape         ``TrainConfig.batch_scenes`` / ``rays_...``  16 / 64
