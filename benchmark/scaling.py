@@ -185,9 +185,13 @@ def scaling_figure(rows: list[dict[str, Any]], path: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmark.scaling", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmark.scaling", description=__doc__.split("\n")[0]
+    )
     ap.add_argument("--out", required=True, help="folder for scaling.json and scaling.png")
-    ap.add_argument("--workers", default="1,2", help="comma-separated worker counts (first = reference)")
+    ap.add_argument(
+        "--workers", default="1,2", help="comma-separated worker counts (first = reference)"
+    )
     ap.add_argument("--scenes", type=int, default=16)
     ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--samples", type=int, default=4)
@@ -216,10 +220,18 @@ def main(argv: list[str] | None = None) -> int:
             rows += measure_training(work, workers, scale=a.train_scale, steps=a.train_steps)
     report = {
         "what": "speed-up from 1 to N workers on this machine (one run, configurations in turn)",
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                    "processor": platform.processor() or platform.machine()},  # fmt: skip
-        "settings": {"scenes": a.scenes, "resolution": a.resolution, "samples": a.samples,
-                     "train_steps": a.train_steps, "train_scale": a.train_scale},  # fmt: skip
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+        },
+        "settings": {
+            "scenes": a.scenes,
+            "resolution": a.resolution,
+            "samples": a.samples,
+            "train_steps": a.train_steps,
+            "train_scale": a.train_scale,
+        },
         "rows": rows,
     }
     atomic_write_json(out / "scaling.json", report)

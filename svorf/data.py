@@ -66,13 +66,13 @@ from scenefmt import (
 
 __all__ = [
     "RAY_SAMPLING",
+    "STATEFUL_RAY_SAMPLING",
     "UORF_FOV_DEG",
     "DatasetError",
     "ErrorMap",
     "MultiViewDataset",
     "RayBatch",
     "RaySampler",
-    "STATEFUL_RAY_SAMPLING",
     "SceneViews",
     "dataset_fingerprint",
     "object_heavy_rays",
@@ -885,9 +885,7 @@ class RaySampler:
         self._fn = RAY_SAMPLING[ray_sampling]
         self.error_map: ErrorMap | None = None
         if ray_sampling in STATEFUL_RAY_SAMPLING:
-            self.error_map = error_map or ErrorMap(
-                len(dataset), dataset.n_views, dataset.image_hw
-            )
+            self.error_map = error_map or ErrorMap(len(dataset), dataset.n_views, dataset.image_hw)
 
     def sample_scenes(self, batch_scenes: int, generator: torch.Generator) -> Tensor:
         """[B] distinct scene positions (with replacement only if B > len(dataset))."""
