@@ -21,10 +21,12 @@ from scenefmt import atomic_write_bytes
 __all__ = [
     "bar_chart",
     "label_colors",
+    "pareto_chart",
     "qualitative_grid",
     "speed_chart",
     "stability_chart",
     "tradeoff_chart",
+    "training_chart",
 ]
 
 
@@ -356,5 +358,122 @@ def tradeoff_chart(
         f"tradeoff ({scale}): training-step speed-up vs evaluation-render error per speed knob",
         fontsize=10,
     )
+    _save(fig, path)
+    return path.name
+
+
+def pareto_chart(
+    path: str | os.PathLike,
+    rows: list[dict[str, Any]],
+    curves: dict[str, dict[str, Any]],
+    title: str,
+) -> str:
+    """One panel per curve: every point, its Pareto front, knee and shipped default.
+
+    Args:
+        path: Output PNG.
+        rows: report rows; a curve's ``points`` are row ids (``metrics[x]``, ``metrics[y]``;
+            ``knob`` and ``setting`` label them).
+        curves: name -> the ``tradeoff`` curve dict (``x``, ``y``, ``y_better``, ``points``,
+            ``front``, ``knee``, optional ``shipped_default``).
+        title: figure title.
+
+    Returns:
+        The file name of ``path``.
+    """
+    plt = _plt()
+    path = Path(path)
+    by_id = {r["id"]: r for r in rows}
+    n = max(1, len(curves))
+    fig, axes = plt.subplots(1, n, figsize=(6.4 * n, 4.8), squeeze=False)
+    for ax, (name, c) in zip(axes[0], curves.items()):
+        pts = [by_id[i] for i in c["points"]]
+        knobs = list(dict.fromkeys(r.get("knob", "") for r in pts))
+        colors = {k: plt.get_cmap("tab10")(i % 10) for i, k in enumerate(knobs)}
+        for k in knobs:
+            sel = [r for r in pts if r.get("knob", "") == k]
+            ax.plot(
+                [r["metrics"][c["x"]] for r in sel],
+                [r["metrics"][c["y"]] for r in sel],
+                "o",
+                color=colors[k],
+                ms=5,
+                label=k,
+            )
+            for r in sel:
+                ax.annotate(
+                    str(r.get("setting", r["model"])).split(" (")[0].split(",")[0],
+                    (r["metrics"][c["x"]], r["metrics"][c["y"]]),
+                    textcoords="offset points",
+                    xytext=(3, 3),
+                    fontsize=6,
+                    color=colors[k],
+                )
+        front = [by_id[i] for i in c["front"]]
+        ax.plot(
+            [r["metrics"][c["x"]] for r in front],
+            [r["metrics"][c["y"]] for r in front],
+            "--",
+            color="#555555",
+            lw=1,
+            label="Pareto front",
+        )
+        d = c.get("shipped_default")
+        if d:
+            r = by_id[d["id"]]
+            ax.plot([r["metrics"][c["x"]]], [r["metrics"][c["y"]]], "k*", ms=12,
+                    label="shipped default")  # fmt: skip
+        if c.get("knee") in by_id:
+            r = by_id[c["knee"]]
+            ax.plot([r["metrics"][c["x"]]], [r["metrics"][c["y"]]], "o", ms=13, mfc="none",
+                    mec="#d62728", mew=1.5, label="knee")  # fmt: skip
+        ax.set_xscale("log")
+        if c["y_better"] == "lower" and all(r["metrics"][c["y"]] > 0 for r in pts):
+            ax.set_yscale("log")
+        ax.set_xlabel(f"{c['x']} (log)", fontsize=8)
+        ax.set_ylabel(f"{c['y']} ({c['y_better']} is better)", fontsize=8)
+        ax.set_title(name, fontsize=9)
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=6, loc="best")
+    fig.suptitle(title, fontsize=10)
+    _save(fig, path)
+    return path.name
+
+
+def training_chart(path: str | os.PathLike, curve: dict[str, Any]) -> str:
+    """Training curve of ``tradeoff``: training-batch PSNR (raw and smoothed) against
+    training wall time, the running-best front, the knee and the budget's end; held-out
+    metrics (``eval.jsonl``) on a second axis when the run has them.
+
+    Returns:
+        The file name of ``path``.
+    """
+    plt = _plt()
+    path = Path(path)
+    pts = curve["points"]
+    t = [p["wall_s"] / 60.0 for p in pts]
+    fig, ax = plt.subplots(figsize=(8, 4.6))
+    ax.plot(t, [p["train_psnr"] for p in pts], color="#9ecae1", lw=0.6, label="training PSNR")
+    ax.plot(t, [p["train_psnr_smoothed"] for p in pts], color="#08519c", lw=1.4,
+            label="smoothed")  # fmt: skip
+    by = {p["id"]: p for p in pts}
+    knee, end = by[curve["knee"]], pts[-1]
+    ax.plot([knee["wall_s"] / 60], [knee["train_psnr_smoothed"]], "o", ms=11, mfc="none",
+            mec="#d62728", mew=1.5, label=f"knee ({knee['wall_s'] / 60:.1f} min)")  # fmt: skip
+    ax.plot([end["wall_s"] / 60], [end["train_psnr_smoothed"]], "k*", ms=12,
+            label=f"shipped budget ({end['wall_s'] / 60:.1f} min)")  # fmt: skip
+    ax.set_xlabel("training wall time (min)", fontsize=8)
+    ax.set_ylabel("training-batch PSNR (dB)", fontsize=8)
+    held = [h for h in curve.get("held_out", []) if "wall_s" in h]
+    if held:
+        ax2 = ax.twinx()
+        for k, col in (("nv_ari", "#2ca02c"), ("fg_ari", "#ff7f0e")):
+            if all(k in h for h in held):
+                ax2.plot([h["wall_s"] / 60 for h in held], [h[k] for h in held], "-o",
+                         color=col, ms=3, label=f"held-out {k}")  # fmt: skip
+        ax2.set_ylabel("held-out ARI (0-1)", fontsize=8)
+        ax2.legend(fontsize=7, loc="lower center")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(f"tradeoff: training curve of run {curve['run']}", fontsize=9)
     _save(fig, path)
     return path.name

@@ -102,6 +102,8 @@ METRIC_UNITS: dict[str, str] = {
     "depth_mean_err": "world units (mean |diff|)",
     "slot_probs_max_err": "unitless [0,1] (max |diff|)",
     "kept_pairs": "fraction of (point, slot) field evaluations",
+    # tradeoff render curve: label map against the default render
+    "labels_changed": "fraction of pixels whose arg-max slot differs from the default render",
 }
 
 _TOP_FIELDS: dict[str, type | tuple[type, ...]] = {

@@ -581,7 +581,7 @@ class SVORF(nn.Module):
         m = t.new_zeros(B, R, N, K)
         evaluated = torch.zeros_like(todo)
         log_stop = math.log(stop) if stop is not None else None
-        seg = max(1, -(-N // _MARCH_SEGMENTS))
+        seg = N if stop is None else max(1, -(-N // _MARCH_SEGMENTS))
         for a in range(0, N, seg):
             b = min(N, a + seg)
             act = todo[..., a:b]

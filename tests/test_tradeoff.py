@@ -45,9 +45,17 @@ def smoke(tmp_path_factory) -> tuple[Path, dict]:
     return path, json.loads(path.read_text())
 
 
+def _step(rows: list[dict]) -> list[dict]:
+    return [r for r in rows if r["curve"] == "step"]
+
+
+def _render(rows: list[dict]) -> list[dict]:
+    return [r for r in rows if r["curve"] == "render"]
+
+
 def _curves(rows: list[dict]) -> dict[tuple[str, str], list[dict]]:
     out: dict[tuple[str, str], list[dict]] = {}
-    for r in rows:
+    for r in _step(rows):
         if not r["reference"]:
             out.setdefault((r["weights"], r["knob"]), []).append(r)
     return out
@@ -86,7 +94,7 @@ def test_every_knob_has_a_curve(smoke):
 
 def test_metrics_finite_and_tolerance_flag_consistent(smoke):
     _, rep = smoke
-    for r in rep["rows"]:
+    for r in _step(rep["rows"]):
         m = r["metrics"]
         assert not r["null_reasons"]
         assert all(v is not None and math.isfinite(v) for v in m.values()), r["id"]
@@ -102,13 +110,13 @@ def test_metrics_finite_and_tolerance_flag_consistent(smoke):
 
 def test_baseline_and_exact_points(smoke):
     _, rep = smoke
-    refs = [r for r in rep["rows"] if r["reference"]]
+    refs = [r for r in _step(rep["rows"]) if r["reference"]]
     assert {r["weights"] for r in refs} == {"init", "sharp-m"}
     for r in refs:  # the reference against itself: by definition
         assert r["metrics"]["speedup"] == 1.0
         assert all(r["metrics"][k] == 0.0 for k in ERRORS)
         assert r["within_tolerance"] and r["metrics"]["kept_pairs"] == 1.0
-    for r in rep["rows"]:
+    for r in _step(rep["rows"]):
         if not r["overrides"]:
             # the off setting is the baseline's config and weights: bit-identical render
             assert all(r["metrics"][k] == 0.0 for k in ERRORS), r["id"]
@@ -130,13 +138,15 @@ def test_baseline_and_exact_points(smoke):
 
 def test_figure_and_page(smoke):
     path, rep = smoke
-    assert rep["figures"] == ["tradeoff.png"]
-    png = path.parent / "tradeoff.png"
-    assert png.is_file() and png.stat().st_size > 10_000
+    # no trained run: no training curve, so no training figure
+    assert rep["figures"] == ["tradeoff.png", "tradeoff_render.png"]
     from PIL import Image
 
-    with Image.open(png) as im:
-        assert im.size[0] > 500 and im.size[1] > 400
+    for name in rep["figures"]:
+        png = path.parent / name
+        assert png.is_file() and png.stat().st_size > 10_000
+        with Image.open(png) as im:
+            assert im.size[0] > 500 and im.size[1] > 400
     page = (path.parent / "index.html").read_text()
     assert "tradeoff: init weights" in page and "tradeoff: sharp-m x8 weights" in page
     assert "tradeoff.png" in page and "beyond tolerance" in page and "within tolerance" in page
@@ -182,6 +192,7 @@ def _trained_run_case(out: Path, data: Path, monkeypatch) -> None:
         train_steps=2,
     )
     rec = trainer.model(ModelJob("full", "clevr567"))
+    trainer.dataset("clevr567", "test")  # the render curve scores against its ground truth
     monkeypatch.setitem(
         tradeoff.SETTINGS,
         "smoke",
@@ -197,3 +208,143 @@ def _trained_run_case(out: Path, data: Path, monkeypatch) -> None:
     assert all(ref["metrics"][k] == 0.0 for k in ERRORS)
     assert any(rec.key in n for n in rep["notes"])
     assert not any("sharp-m" == r["weights"] for r in rep["rows"])
+    # render curve: the trained weights against the test split's ground truth
+    render = _render(rep["rows"])
+    assert render and all(r["weights"] == "trained" and r["ground_truth"] for r in render)
+    assert all(r["run_key"] == rec.key for r in render)
+    for r in render:
+        assert r["metrics"]["psnr"] is not None and r["metrics"]["psnr"] > 0
+        assert r["metrics"]["nv_ari"] is not None
+    assert rep["scale_settings"]["tradeoff"]["render"]["ground_truth"]
+    assert {"render: trained weights, psnr", "render: trained weights, nv_ari"} <= set(
+        rep["curves"]
+    )
+    assert any(d["split"] == "test" for d in rep["datasets"])
+    train = rep["curves"]["training"]
+    assert train.get("points") or "no usable log" in train["absent"]
+
+
+# ----------------------------------------------------------------------------- render curve
+
+
+def test_render_curve_without_a_trained_run(smoke):
+    """No trained run: init weights on analytic scenes, differences against the default
+    render only, PSNR / NV-ARI null with the reason."""
+    _, rep = smoke
+    rows = _render(rep["rows"])
+    assert {r["knob"] for r in rows} == {
+        "default",
+        "samples_per_ray",
+        "clip_to_box",
+        "eval_early_stop",
+        "eval_fine_min_weight",
+        "combined",
+    }
+    assert all(r["weights"] == "init" and not r["ground_truth"] for r in rows)
+    for r in rows:
+        m = r["metrics"]
+        assert m["render_s_per_view"] > 0 and m["speedup"] > 0
+        for k in ("psnr", "nv_ari"):
+            assert m[k] is None and "no ground truth used" in r["null_reasons"][k]
+        assert all(m[k] is not None and m[k] >= 0 for k in ("rgb_max_err", "labels_changed"))
+        if r["reference"] or r["exact_by_construction"]:
+            assert m["rgb_max_err"] == 0.0 and m["labels_changed"] == 0.0
+    stop = {
+        r["setting"]: r["metrics"]["rgb_max_err"] for r in rows if r["knob"] == "eval_early_stop"
+    }
+    assert stop["0.001"] <= 2e-2 and stop["0.001"] <= stop["0.2"]
+    info = rep["scale_settings"]["tradeoff"]["render"]
+    assert info["weights"] == "init" and not info["ground_truth"]
+    assert "init weights" in info["why_no_ground_truth"]
+
+
+def test_fronts_knees_and_shipped_defaults(smoke):
+    _, rep = smoke
+    curves = rep["curves"]
+    assert set(curves) == {
+        "step: init weights",
+        "step: sharp-m weights",
+        "render: init weights, rgb_mean_err",
+        "render: init weights, labels_changed",
+        "training",
+    }
+    assert "no finished benchmark run" in curves["training"]["absent"]
+    by_id = {r["id"]: r for r in rep["rows"]}
+    for name, c in curves.items():
+        if name == "training":
+            continue
+        assert c["front"] and set(c["front"]) <= set(c["points"])
+        assert c["knee"] in c["front"]
+        d = c["shipped_default"]
+        assert d["id"] in c["points"] and d["on_front"] == (d["id"] in c["front"])
+        assert d["on_front"] == (not d["dominated_by"])
+        pts = [(i, by_id[i]["metrics"][c["x"]], by_id[i]["metrics"][c["y"]]) for i in c["points"]]
+        assert tradeoff.pareto_front(pts, c["timing_noise"]) == c["front"]
+        for i in c["points"]:
+            assert (name in by_id[i]["on_front"]) == (i in c["front"])
+    # smoke ships no speed knob: the step curves' default is the knob-free reference
+    assert by_id[curves["step: init weights"]["shipped_default"]["id"]]["reference"]
+    text = " ".join(rep["notes"])
+    assert "Curve 'render: init weights, rgb_mean_err'" in text and "shipped default is" in text
+
+
+def test_pareto_front_and_knee():
+    pts = [("a", 1.0, 5.0), ("b", 2.0, 2.0), ("c", 4.0, 1.0), ("d", 3.0, 3.0), ("e", 8.0, 1.0)]
+    front = tradeoff.pareto_front(pts)
+    assert front == ["a", "b", "c"]  # d is dominated by b, e by c (same error, slower)
+    assert tradeoff.knee_point(pts, front) == "b"
+    # equal-error points within the timing noise do not dominate each other
+    assert tradeoff.pareto_front([("x", 1.0, 0.0), ("y", 1.04, 0.0)], noise=0.05) == ["x", "y"]
+    assert tradeoff.pareto_front([("x", 1.0, 0.0), ("y", 1.04, 0.0)]) == ["x"]
+    assert tradeoff.knee_point([], []) is None
+    c = tradeoff.curve_summary(
+        [
+            {"id": "p", "metrics": {"t": 1.0, "q": 20.0}},
+            {"id": "q", "metrics": {"t": 2.0, "q": 30.0}},
+            {"id": "r", "metrics": {"t": 3.0, "q": 25.0}},
+            {"id": "s", "metrics": {"t": 0.5, "q": None}},
+        ],
+        "t",
+        "q",
+        True,
+        "r",
+        "",
+    )
+    assert c["front"] == ["p", "q"] and c["points"] == ["p", "q", "r"]
+    assert c["shipped_default"] == {
+        "id": "r",
+        "on_front": False,
+        "is_knee": False,
+        "dominated_by": ["q"],
+    }
+
+
+def test_training_curve_from_a_run_log(tmp_path):
+    """The training curve reads svorf's log.jsonl / eval.jsonl: running-best front, knee
+    within 0.5 dB of the end, the budget's end as the shipped default, a figure."""
+    run = tmp_path / "run"
+    run.mkdir()
+    lines = []
+    for i in range(1, 41):
+        p = 30.0 - 10.0 * math.exp(-i / 6.0) + (0.3 if i % 2 else -0.3)
+        lines.append(
+            json.dumps(
+                {"step": 25 * i, "wall_s": 10.0 * i, "loss": 10 ** (-p / 10), "parts": {"psnr": p}}
+            )
+        )
+    (run / "log.jsonl").write_text("\n".join(lines) + "\n{truncated")
+    (run / "eval.jsonl").write_text(json.dumps({"step": 500, "wall_s": 200.0, "nv_ari": 0.5}))
+    c = tradeoff.training_curve(run, "key")
+    assert len(c["points"]) == 40 and c["shipped_default"]["id"] == "step 1000"
+    sm = {p["id"]: p["train_psnr_smoothed"] for p in c["points"]}
+    assert all(sm[a] < sm[b] for a, b in zip(c["front"], c["front"][1:]))
+    end = c["points"][-1]["train_psnr_smoothed"]
+    knee = sm[c["knee"]]
+    assert knee >= end - tradeoff.TRAIN_KNEE_DB
+    assert c["points"][0]["wall_s"] < next(p["wall_s"] for p in c["points"] if p["id"] == c["knee"])
+    assert c["held_out"] == [{"step": 500.0, "wall_s": 200.0, "nv_ari": 0.5}]
+    from benchmark.figures import training_chart
+
+    assert training_chart(tmp_path / "t.png", c) == "t.png"
+    assert (tmp_path / "t.png").stat().st_size > 10_000
+    assert tradeoff.training_curve(tmp_path, None) is None  # no log

@@ -43,6 +43,7 @@ import json
 import math
 import statistics
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,21 +103,26 @@ class TradeoffSettings:
         warmup: untimed repeats before (allocator, caches).
         threads: torch intra-op threads during the run (None = leave as is).
         sharp: add the ``sharp-m`` weight set.
+        render_scenes: test scenes each point of the render curve renders (every view).
+        render_repeats: timed interleaved repeats of the render curve.
     """
 
     repeats: int
     warmup: int
     threads: int | None
     sharp: bool = True
+    render_scenes: int = 2
+    render_repeats: int = 1
 
 
 SETTINGS: dict[str, TradeoffSettings] = {
     # Tiny model, 2 scenes x 64 rays: seconds; one thread so tests stay quiet on 2 cores.
     "smoke": TradeoffSettings(repeats=3, warmup=1, threads=1),
-    # The cpu-scale model and batch (4 x 128 rays) on a 2-core machine: minutes.
-    "cpu": TradeoffSettings(repeats=7, warmup=2, threads=2),
+    # The cpu-scale model and batch (4 x 128 rays) on a 2-core machine: minutes; the render
+    # curve renders 4 test scenes x 4 views at 64x64 per point (~0.3-0.6 s per view).
+    "cpu": TradeoffSettings(repeats=7, warmup=2, threads=2, render_scenes=4, render_repeats=2),
     # The paper's model and batch (16 x 64 rays); meant for a GPU.
-    "paper": TradeoffSettings(repeats=5, warmup=2, threads=None),
+    "paper": TradeoffSettings(repeats=5, warmup=2, threads=None, render_scenes=8, render_repeats=2),
 }
 
 
@@ -132,6 +138,10 @@ class WeightSet:
     knobs: tuple[str, ...]
     description: str
     run_key: str | None = None
+    shipped: Any = None
+    """The model config as shipped / trained (speed knobs as configured): the render
+    curve's default point. None = ``base``."""
+    run_dir: Path | None = None
 
 
 @dataclass
@@ -326,6 +336,8 @@ def weight_sets(ctx: Context, settings: TradeoffSettings) -> list[WeightSet]:
                     f"benchmark run {run_dir.name} (full model on clevr567, {steps} training "
                     f"steps at scale {ctx.scale})",
                     run_key=run_dir.name,
+                    shipped=model.cfg,
+                    run_dir=run_dir,
                 )
             )
     return out
@@ -419,6 +431,7 @@ def _row(p: Point, m: dict[str, Any], settings: TradeoffSettings, batch: tuple[i
         "metrics": metrics,
         "null_reasons": reasons,
         "n_cases": settings.repeats,
+        "curve": "step",
         "knob": p.knob,
         "setting": p.setting,
         "overrides": p.overrides,
@@ -491,9 +504,648 @@ def _summaries(rows: list[dict[str, Any]], noise_hi: float | None) -> list[str]:
     return out
 
 
+# ---------------------------------------------------------------------------------------------
+# Pareto fronts (every curve)
+
+
+def _dominates(a: tuple[float, float], b: tuple[float, float], noise: float) -> bool:
+    """Whether (time, error) ``a`` dominates ``b``: no worse on both axes and better on one,
+    where times within the relative timing ``noise`` of each other count as equal."""
+    (ta, ea), (tb, eb) = a, b
+    faster = ta < tb * (1.0 - noise)
+    not_slower = ta <= tb * (1.0 + noise)
+    return (ea <= eb and faster) or (ea < eb and not_slower)
+
+
+def pareto_front(points: list[tuple[str, float, float]], noise: float = 0.0) -> list[str]:
+    """Ids of the points no other point dominates, by increasing time.
+
+    Args:
+        points: ``(id, time, error)``; smaller is better on both axes (pass -PSNR for a
+            quality metric).
+        noise: relative timing noise: times within it count as equal (so a point is not
+            dominated by an equal-error point that was only luckier on the clock).
+    Returns:
+        The ids of the front: no other point has time <= and error <= with one of them <.
+    """
+    front = []
+    for pid, t, e in points:
+        if not any(_dominates((t2, e2), (t, e), noise) for qid, t2, e2 in points if qid != pid):
+            front.append((t, e, pid))
+    return [pid for _, _, pid in sorted(front)]
+
+
+def knee_point(points: list[tuple[str, float, float]], front: list[str]) -> str | None:
+    """The front's knee: the point farthest below the chord from its fastest to its most
+    accurate end, both axes scaled to [0, 1] over the front (time on a log axis). None for
+    an empty front; the single point of a one-point front; with two, the faster one."""
+    if not front:
+        return None
+    if len(front) <= 2:
+        return front[0]
+    by = {pid: (t, e) for pid, t, e in points}
+    ts = [math.log(max(by[p][0], 1e-12)) for p in front]
+    es = [by[p][1] for p in front]
+
+    def unit(v: list[float]) -> list[float]:
+        lo, hi = min(v), max(v)
+        return [0.0 if hi == lo else (x - lo) / (hi - lo) for x in v]
+
+    x, y = unit(ts), unit(es)
+    # chord from (x0, y0) (fastest, largest error) to (x1, y1) (slowest, smallest error)
+    x0, y0, x1, y1 = x[0], y[0], x[-1], y[-1]
+    n = math.hypot(x1 - x0, y1 - y0) or 1.0
+    dist = [((x1 - x0) * (y0 - yi) - (xi - x0) * (y0 - y1)) / n for xi, yi in zip(x, y)]
+    best = max(range(len(front)), key=lambda i: dist[i])
+    return front[best] if dist[best] > 0 else front[0]
+
+
+def curve_summary(
+    rows: list[dict[str, Any]],
+    x: str,
+    y: str,
+    higher_is_better: bool,
+    default_id: str | None,
+    note: str,
+    noise: float = 0.0,
+) -> dict[str, Any] | None:
+    """Front, knee and where ``default_id`` (the shipped default) sits, for ``rows`` on the
+    axes ``metrics[x]`` (time, smaller is better) and ``metrics[y]``, times within the
+    relative ``noise`` counting as equal. Rows with a null on either axis are left out;
+    None when no row remains."""
+    pts = []
+    for r in rows:
+        tv, ev = r["metrics"].get(x), r["metrics"].get(y)
+        if tv is None or ev is None:
+            continue
+        pts.append((r["id"], float(tv), -float(ev) if higher_is_better else float(ev)))
+    if not pts:
+        return None
+    front = pareto_front(pts, noise)
+    knee = knee_point(pts, front)
+    out: dict[str, Any] = {
+        "x": x,
+        "y": y,
+        "y_better": "higher" if higher_is_better else "lower",
+        "timing_noise": noise,
+        "points": [p[0] for p in pts],
+        "front": front,
+        "knee": knee,
+        "note": note,
+    }
+    if default_id is not None and any(p[0] == default_id for p in pts):
+        t, e = next((t, e) for pid, t, e in pts if pid == default_id)
+        out["shipped_default"] = {
+            "id": default_id,
+            "on_front": default_id in front,
+            "is_knee": default_id == knee,
+            "dominated_by": [
+                pid
+                for pid, t2, e2 in pts
+                if pid != default_id and _dominates((t2, e2), (t, e), noise)
+            ],
+        }
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Render curve: evaluation render time per view against image / segmentation quality
+
+#: Smallest relative timing noise assumed when comparing times on a front.
+MIN_NOISE = 0.05
+#: Thresholds swept for ``ModelConfig.eval_early_stop`` (transmittance).
+EARLY_STOPS = (1e-3, 1e-2, 5e-2, 0.2)
+#: Thresholds swept for ``ModelConfig.eval_fine_min_weight`` (coarse bin weight).
+FINE_MIN_WEIGHTS = (0.01, 0.05, 0.1, 0.3)
+#: The combination point of the render curve.
+EVAL_COMBINED = {"eval_early_stop": 1e-2, "eval_fine_min_weight": 0.05}
+_RENDER_QUALITY = ("psnr", "nv_ari", "nv_fg_ari", "fg_ari")
+_RENDER_DIFF = ("rgb_max_err", "rgb_mean_err", "depth_mean_err", "labels_changed")
+
+
+@dataclass
+class RenderPoint:
+    """One evaluation-render setting of the render curve."""
+
+    knob: str
+    setting: str
+    overrides: dict[str, Any]
+    reference: bool = False
+    exact: bool = False
+    """The default's config, timed as a point of its own (error 0 by construction)."""
+    times: list[float] = field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        if self.reference or self.exact:
+            return f"default ({self.setting})"
+        return f"{self.knob}={self.setting}"
+
+
+def render_points(cfg: Any) -> list[RenderPoint]:
+    """The shipped default (``cfg``, eval knobs off) and every render-curve point: samples
+    per ray, ``clip_to_box`` flipped, ``eval_early_stop``, ``eval_fine_min_weight`` (with
+    fine samples only) and :data:`EVAL_COMBINED`."""
+    nc, nf = int(cfg.n_coarse), int(cfg.n_fine)
+    pts = [
+        RenderPoint(
+            "default",
+            f"{nc}+{nf} samples, clip_to_box={cfg.clip_to_box}, eval knobs off",
+            {},
+            reference=True,
+        ),
+        # The default again, built and timed separately: its speed-up is the timing noise.
+        RenderPoint("default", "timed again", {}, exact=True),
+    ]
+    sp = [(max(1, nc // 2), nf // 2)] + ([(nc, 0)] if nf > 0 else []) + [(2 * nc, 2 * nf)]
+    for c, f in sp:
+        pts.append(RenderPoint("samples_per_ray", f"{c}+{f}", {"n_coarse": c, "n_fine": f}))
+    pts.append(
+        RenderPoint("clip_to_box", str(not cfg.clip_to_box), {"clip_to_box": not cfg.clip_to_box})
+    )
+    for v in EARLY_STOPS:
+        pts.append(RenderPoint("eval_early_stop", _fmt(v), {"eval_early_stop": v}))
+    if nf > 0:
+        for v in FINE_MIN_WEIGHTS:
+            pts.append(RenderPoint("eval_fine_min_weight", _fmt(v), {"eval_fine_min_weight": v}))
+        pts.append(RenderPoint("combined", _knobs_txt(EVAL_COMBINED), dict(EVAL_COMBINED)))
+    return pts
+
+
+@dataclass
+class RenderScenes:
+    """What the render curve renders: a split, its scene positions and how it is scored."""
+
+    dataset: Any
+    scenes: list[int]
+    name: str
+    ground_truth: bool
+    why_no_truth: str | None = None
+
+
+def _render_scenes(
+    ctx: Context, ws: WeightSet, settings: TradeoffSettings, tmp: Path
+) -> RenderScenes:
+    """The clevr567 test split at this scale when ``ws`` is trained on clevr567 and the split
+    is complete on disk (scored against its ground truth); otherwise a small analytic
+    sphere split written to ``tmp`` (scored against the default render only)."""
+    from benchmark.datasets import _complete, dataset_dir, ensure_dataset
+
+    n = settings.render_scenes
+    root = dataset_dir(ctx.data, ctx.scale, "clevr567", "test")
+    why = "init weights: no trained model to score against ground truth"
+    if ws.name == "trained":
+        why = f"no complete clevr567 test split at {root}"
+        try:
+            complete = (root / "manifest.json").is_file() and _complete(
+                root, ctx.settings.n_scenes("clevr567", "test"), ctx.settings.resolution
+            )[0]
+        except ValueError as err:  # another resolution
+            complete, why = False, str(err)
+        if complete:
+            manifest = json.loads((root / "manifest.json").read_text())
+            source = (
+                "synthetic"
+                if str(manifest.get("generator", "")).startswith("svorf.synthetic")
+                else "generator"
+            )
+            info = ensure_dataset(
+                ctx.data, ctx.settings, "clevr567", "test", source=source, progress=False
+            )  # complete: nothing is generated
+            ctx.datasets[("clevr567", "test")] = info
+            ds = adapter.open_dataset(info.path)
+            return RenderScenes(ds, list(range(min(n, len(ds)))), info.name, True)
+    split = adapter.write_synthetic_split(
+        tmp / "render_scenes",
+        n_scenes=n,
+        resolution=ctx.settings.resolution,
+        seed=ctx.seeds["eval"],
+        n_views=2,
+        preset="synthetic",
+        split="test",
+    )
+    ds = adapter.open_dataset(split)
+    return RenderScenes(
+        ds,
+        list(range(len(ds))),
+        f"svorf.synthetic spheres ({n} scenes x 2 views, {ctx.settings.resolution}px)",
+        False,
+        why,
+    )
+
+
+def _build(ws: WeightSet, cfg: Any) -> Any:
+    from svorf.model import SVORF
+
+    m = SVORF(cfg)
+    m.load_state_dict(ws.state)
+    return m.eval()
+
+
+def measure_render(
+    ctx: Context, ws: WeightSet, settings: TradeoffSettings, tmp: Path
+) -> tuple[list[dict[str, Any]], RenderScenes, Any]:
+    """Render the scenes with every :func:`render_points` setting, timed interleaved.
+
+    Returns:
+        (rows, scenes, shipped config): one report row per point, the default first.
+    """
+    from benchmark.evaluate import _score_scene, aggregate
+
+    shipped = ws.shipped if ws.shipped is not None else _shipped(ctx)
+    points = render_points(shipped)
+    scenes = _render_scenes(ctx, ws, settings, tmp)
+    models = [_build(ws, shipped.replace(**p.overrides)) for p in points]
+    preds: list[list[Any]] = [[] for _ in points]
+    views = 0
+    for m in models:  # warm-up (allocator, caches), untimed
+        adapter.predict_scene(m, scenes.dataset, scenes.scenes[0])
+    for r in range(settings.render_repeats):
+        for j, (p, m) in enumerate(zip(points, models, strict=True)):
+            t0 = time.perf_counter()
+            out = [adapter.predict_scene(m, scenes.dataset, i) for i in scenes.scenes]
+            p.times.append(time.perf_counter() - t0)
+            if r == 0:
+                preds[j] = out
+                views = sum(int(o.rgb.shape[0]) for o in out)
+        _log(f"render repeat {r + 1}/{settings.render_repeats} done ({len(points)} points)")
+    truths = [adapter.ground_truth(scenes.dataset, i) for i in scenes.scenes]
+    ref = preds[0]
+    table = f"tradeoff render: {ws.name} weights"
+    rows = []
+    for p, pr in zip(points, preds, strict=True):
+        per_view = statistics.median(p.times) / max(views, 1)
+        metrics: dict[str, float | None] = {
+            "render_s_per_view": per_view,
+            "speedup": statistics.median(points[0].times) / statistics.median(p.times),
+        }
+        rgb_d = torch.cat([(a.rgb - b.rgb).abs().flatten() for a, b in zip(pr, ref, strict=True)])
+        dep = torch.cat(
+            [(a.depth_z - b.depth_z).flatten().abs() for a, b in zip(pr, ref, strict=True)]
+        )
+        dep = dep[torch.isfinite(dep)]
+        lab = torch.cat([(a.labels != b.labels).flatten() for a, b in zip(pr, ref, strict=True)])
+        metrics.update(
+            rgb_max_err=float(rgb_d.max()),
+            rgb_mean_err=float(rgb_d.mean()),
+            depth_mean_err=float(dep.mean()) if dep.numel() else None,
+            labels_changed=float(lab.float().mean()),
+        )
+        reasons: dict[str, str] = {}
+        if metrics["depth_mean_err"] is None:
+            reasons["depth_mean_err"] = "no_finite_value (no finite depth in either render)"
+        if scenes.ground_truth:
+            acc: dict[str, list[float]] = {}
+            skip = {"lpips": "not computed by tradeoff"}
+            for pred, truth in zip(pr, truths, strict=True):
+                _score_scene(pred.rgb, None, pred.labels, truth, 0, None, acc, skip, {})
+            agg, nulls, _, _ = aggregate({k: acc[k] for k in _RENDER_QUALITY if k in acc})
+            for k in _RENDER_QUALITY:
+                metrics[k] = agg.get(k)
+                if metrics[k] is None:
+                    reasons[k] = nulls.get(k, "not computed (no novel view)")
+        else:
+            for k in _RENDER_QUALITY:
+                metrics[k] = None
+                reasons[k] = f"no ground truth used: {scenes.why_no_truth}"
+        for k, v in list(metrics.items()):
+            if v is not None and not math.isfinite(v):
+                metrics[k] = None
+                reasons[k] = "non_finite (NaN/Inf measured)"
+        cfg = shipped.replace(**p.overrides)
+        row = {
+            "id": row_id(table, p.label, scenes.name, "measured"),
+            "table": table,
+            "model": p.label,
+            "dataset": scenes.name,
+            "variant": ws.name,
+            "source": "measured",
+            "metrics": metrics,
+            "null_reasons": reasons,
+            "n_scenes": len(scenes.scenes),
+            "curve": "render",
+            "knob": p.knob,
+            "setting": p.setting,
+            "overrides": p.overrides,
+            "weights": ws.name,
+            "reference": p.reference,
+            "exact_by_construction": p.exact,
+            "n_views": views,
+            "samples_per_ray": [int(cfg.n_coarse), int(cfg.n_fine)],
+            "render_times_s": [round(t, 6) for t in p.times],
+            "ground_truth": scenes.ground_truth,
+        }
+        if ws.run_key:
+            row["run_key"] = ws.run_key
+        if p.reference:
+            row["note"] = (
+                "the shipped default: the model's config as trained, evaluation knobs off; "
+                "the differences of every point are against this render"
+            )
+        rows.append(row)
+    return rows, scenes, shipped
+
+
+def _shipped(ctx: Context) -> Any:
+    """The benchmark's clevr567 model config at this scale, speed knobs as configured."""
+    return adapter.model_config(ctx.scale, "clevr567", "full")
+
+
+# ---------------------------------------------------------------------------------------------
+# Training curve: metric against wall-clock training time, from a run's logs
+
+#: Log lines averaged (centred running mean) to smooth the per-batch training PSNR.
+TRAIN_SMOOTH = 9
+#: The knee of the training curve: first time the smoothed PSNR is within this of its end.
+TRAIN_KNEE_DB = 0.5
+
+
+def _read_jsonl(path: Path) -> list[dict[str, Any]]:
+    """Lines of a JSON-lines file (svorf's log.jsonl / eval.jsonl); [] if missing; a
+    truncated last line (a run being written) is skipped."""
+    if not path.is_file():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except ValueError:
+            continue
+    return out
+
+
+def training_curve(run_dir: Path, run_key: str | None = None) -> dict[str, Any] | None:
+    """Training PSNR (per batch, smoothed) and any held-out metrics against training wall time.
+
+    Reads ``log.jsonl`` (step, wall_s, parts.psnr, loss) and ``eval.jsonl`` (step, wall_s,
+    held-out metrics) of an svorf run folder; ``wall_s`` is training time (evaluation and
+    checkpoint writes excluded, svorf.train). The front is the running best of the smoothed
+    PSNR; the knee is the first point within :data:`TRAIN_KNEE_DB` dB of the last smoothed
+    value; the shipped default is the last point (the run's training budget).
+
+    Returns:
+        The curve dict, or None when the run has no usable log.
+    """
+    log = [
+        r
+        for r in _read_jsonl(run_dir / "log.jsonl")
+        if isinstance(r.get("wall_s"), (int, float)) and isinstance(r.get("parts"), dict)
+        and isinstance(r["parts"].get("psnr"), (int, float)) and math.isfinite(r["parts"]["psnr"])
+    ]  # fmt: skip
+    if len(log) < 2:
+        return None
+    psnr = [float(r["parts"]["psnr"]) for r in log]
+    h = TRAIN_SMOOTH // 2
+    smooth = [statistics.fmean(psnr[max(0, i - h) : i + h + 1]) for i in range(len(psnr))]
+    points = [
+        {
+            "id": f"step {int(r['step'])}",
+            "step": int(r["step"]),
+            "wall_s": round(float(r["wall_s"]), 3),
+            "train_psnr": round(p, 4),
+            "train_psnr_smoothed": round(sm, 4),
+            "loss": float(r["loss"]) if math.isfinite(float(r.get("loss", math.nan))) else None,
+        }
+        for r, p, sm in zip(log, psnr, smooth, strict=True)
+    ]
+    front, best = [], -math.inf
+    for pt in points:
+        if pt["train_psnr_smoothed"] > best:
+            best = pt["train_psnr_smoothed"]
+            front.append(pt["id"])
+    end = points[-1]["train_psnr_smoothed"]
+    knee = next(pt for pt in points if pt["train_psnr_smoothed"] >= end - TRAIN_KNEE_DB)
+    held = []
+    for r in _read_jsonl(run_dir / "eval.jsonl"):
+        if not isinstance(r.get("wall_s"), (int, float)):
+            continue
+        keep = {
+            k: float(v)
+            for k, v in r.items()
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        }
+        held.append(keep)
+    return {
+        "kind": "training",
+        "run": run_dir.name,
+        "run_key": run_key,
+        "x": "wall_s",
+        "y": "train_psnr_smoothed",
+        "y_better": "higher",
+        "points": points,
+        "front": front,
+        "knee": knee["id"],
+        "shipped_default": {
+            "id": points[-1]["id"],
+            "on_front": points[-1]["id"] in front,
+            "is_knee": points[-1]["id"] == knee["id"],
+            "dominated_by": [],
+        },
+        "held_out": held,
+        "note": (
+            f"Training-batch PSNR (the fine pass's MSE on the sampled rays, running mean over "
+            f"{TRAIN_SMOOTH} log lines) against training wall time (evaluation and checkpoint "
+            f"writes excluded). Knee: the first point within {TRAIN_KNEE_DB:g} dB of the last "
+            f"smoothed value ({knee['wall_s'] / 60:.1f} of {points[-1]['wall_s'] / 60:.1f} min, "
+            f"step {knee['step']} of {points[-1]['step']}). The shipped default is the run's "
+            "budget, its last point. "
+            + (
+                f"held_out: the {len(held)} held-out evaluations of eval.jsonl."
+                if held
+                else "The run has no eval.jsonl, so no held-out metric over time."
+            )
+        ),
+    }
+
+
+def _step_default_id(sel: list[dict[str, Any]], ws: WeightSet, scale: str) -> str | None:
+    """Id of the step-curve row holding the scale's shipped knobs: the ``combined`` row of
+    the scale defaults (or of every knob, when the defaults are every knob), else the
+    knob-free reference (no knob on by default)."""
+    scale_cfg = adapter.model_config(scale, "clevr567", "full")
+    defaults = {
+        n: getattr(scale_cfg, n) for n in ALL_KNOBS if getattr(scale_cfg, n) != _off_value(n)
+    }
+    if ws.base.fg_box is not None:
+        defaults.pop("fg_box", None)
+    for r in sel:
+        if (r["reference"] and not defaults) or (
+            defaults and r["knob"] == "combined" and r["overrides"] == defaults
+        ):
+            return r["id"]
+    return None
+
+
+def _noise(speedups: list[float | None]) -> float:
+    """Relative timing noise from the speed-ups of instances equal to the reference: the
+    largest |speed-up - 1|, at least :data:`MIN_NOISE`."""
+    vals = [abs(1.0 - v) for v in speedups if v]
+    return max([MIN_NOISE, *vals])
+
+
+def _step_curves(
+    rows: list[dict[str, Any]], sets: list[WeightSet], scale: str
+) -> dict[str, dict[str, Any]]:
+    """Front of every weight set's training-step points: step time against rgb mean error."""
+    out = {}
+    for ws in sets:
+        sel = [r for r in rows if r["weights"] == ws.name]
+        offs = [  # the knob-free config timed as points of their own
+            r["metrics"]["speedup"]
+            for r in sel
+            if not r["overrides"] and not r["reference"] and r["metrics"]["speedup"]
+        ]
+        c = curve_summary(
+            sel,
+            "step_time_s",
+            "rgb_mean_err",
+            False,
+            _step_default_id(sel, ws, scale),
+            "training-step time against the evaluation render's rgb mean |diff| from the "
+            "knob-free model with the same weights; the shipped default is the scale's "
+            "knobs (model_config) on these weights. Times within the timing noise (the "
+            "largest |speed-up - 1| of the knob-free instances, at least 5%) count as equal.",
+            _noise(offs),
+        )
+        if c is not None:
+            out[f"step: {ws.name} weights"] = {"kind": "step", "weights": ws.name, **c}
+    return out
+
+
+def _render_curves(
+    rows: list[dict[str, Any]], ws: WeightSet, scenes: RenderScenes
+) -> dict[str, dict[str, Any]]:
+    """Fronts of the render curve: time per view against PSNR and NV-ARI (ground truth), or
+    against the rgb / label difference from the default render (no ground truth)."""
+    ref = next(r["id"] for r in rows if r["reference"])
+    noise = _noise([r["metrics"]["speedup"] for r in rows if r["exact_by_construction"]])
+    axes = (
+        [("psnr", True), ("nv_ari", True)]
+        if scenes.ground_truth
+        else [("rgb_mean_err", False), ("labels_changed", False)]
+    )
+    why = (
+        f"against the ground truth of {scenes.name}"
+        if scenes.ground_truth
+        else f"against the default render (no ground truth: {scenes.why_no_truth})"
+    )
+    out = {}
+    for y, higher in axes:
+        c = curve_summary(
+            rows,
+            "render_s_per_view",
+            y,
+            higher,
+            ref,
+            f"evaluation render time per view (encoding included, median of the repeats) "
+            f"against {y}, {why}; the shipped default is the model's config as trained with "
+            "the evaluation knobs off. Times within the timing noise (|speed-up - 1| of the "
+            "default timed again, at least 5%) count as equal.",
+            noise,
+        )
+        if c is not None:
+            out[f"render: {ws.name} weights, {y}"] = {"kind": "render", "weights": ws.name, **c}
+    return out
+
+
+def _training_entry(ws: WeightSet | None, ctx: Context) -> dict[str, Any]:
+    if ws is None or ws.run_dir is None:
+        return {
+            "kind": "training",
+            "absent": (
+                "no finished benchmark run of the clevr567 'full' model at this scale under "
+                f"{ctx.out / 'runs'}: no training log to read"
+            ),
+        }
+    c = training_curve(ws.run_dir, ws.run_key)
+    if c is None:
+        return {"kind": "training", "absent": f"run {ws.run_dir.name} has no usable log.jsonl"}
+    return c
+
+
+def _mark_fronts(rows: list[dict[str, Any]], curves: dict[str, dict[str, Any]]) -> None:
+    """Add ``on_front`` (names of the curves whose front holds the row) to every row of a
+    curve."""
+    by_id = {r["id"]: r for r in rows}
+    for name, c in curves.items():
+        if c.get("kind") == "training" or "points" not in c:
+            continue
+        for pid in c["points"]:
+            by_id[pid].setdefault("on_front", [])
+        for pid in c["front"]:
+            by_id[pid]["on_front"].append(name)
+
+
+def _front_notes(curves: dict[str, dict[str, Any]], rows: list[dict[str, Any]]) -> list[str]:
+    """One sentence per curve: its front, its knee and where the shipped default sits."""
+    label = {r["id"]: f"{r['model']}" for r in rows}
+    out = []
+    for name, c in curves.items():
+        if "absent" in c:
+            out.append(f"Curve '{name}': absent ({c['absent']}).")
+            continue
+        if c.get("kind") == "training":
+            out.append(f"Curve 'training' (run {c['run']}): {c['note']}")
+            continue
+        d = c.get("shipped_default")
+        where = "not on this curve"
+        if d:
+            where = (
+                ("the knee of the front" if d["is_knee"] else "on the front")
+                if d["on_front"]
+                else "off the front, dominated by " + ", ".join(label[i] for i in d["dominated_by"])
+            )
+        out.append(
+            f"Curve '{name}' ({c['x']} vs {c['y']}, {c['y_better']} is better): front = "
+            + ", ".join(label[i] for i in c["front"])
+            + f"; knee = {label.get(c['knee'], c['knee'])}; the shipped default is {where}."
+        )
+    return out
+
+
+def _render_note(
+    rows: list[dict[str, Any]], ws: WeightSet, scenes: RenderScenes, settings: TradeoffSettings
+) -> str:
+    truth = (
+        "PSNR (novel views) and NV-ARI / NV-FG-ARI / FG-ARI against the ground truth of "
+        f"{scenes.name} (benchmark.evaluate's scoring)"
+        if scenes.ground_truth
+        else f"no ground-truth metric ({scenes.why_no_truth}): PSNR and NV-ARI are null"
+    )
+    return (
+        f"Render curve ({ws.name} weights): each point renders {len(scenes.scenes)} scenes x "
+        f"every view with svorf's predict_scene (encode the input view, render_chunked), "
+        f"{settings.render_repeats} interleaved repeat(s), time per view = median / views; "
+        f"{truth}; rgb/depth/label differences are against the default render. Knobs: "
+        "samples per ray, clip_to_box, eval_early_stop (transmittance threshold), "
+        "eval_fine_min_weight (fine samples only in coarse bins of at least this weight)."
+    )
+
+
+def format_render_table(rows: list[dict[str, Any]]) -> str:
+    """Plain-text table of the render curve's rows."""
+    head = (
+        f"{'point':58s} {'s/view':>8s} {'speed-up':>8s} {'psnr':>7s} {'nv_ari':>7s} "
+        f"{'rgb mean':>9s} {'labels':>7s} {'front':>5s}"
+    )
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        m = r["metrics"]
+
+        def f(k: str, spec: str, m: dict[str, Any] = m) -> str:
+            return "null" if m.get(k) is None else format(m[k], spec)
+
+        lines.append(
+            f"{r['model'][:58]:58s} {f('render_s_per_view', '8.4f')} {f('speedup', '8.2f')} "
+            f"{f('psnr', '7.2f')} {f('nv_ari', '7.2f')} {f('rgb_mean_err', '9.2e')} "
+            f"{f('labels_changed', '7.4f')} {'yes' if r.get('on_front') else '':>5s}"
+        )
+    return "\n".join(lines)
+
+
 def run_tradeoff(ctx: Context) -> Path:
     """Measure every knob's time-vs-error curve at ``ctx.scale``; write the report."""
-    from benchmark.figures import tradeoff_chart
+    from benchmark.figures import pareto_chart, tradeoff_chart, training_chart
 
     settings = SETTINGS[ctx.scale]
     report = ctx.base_report()
@@ -514,11 +1166,21 @@ def run_tradeoff(ctx: Context) -> Path:
             f"threads {torch.get_num_threads()}, device {ctx.device}"
         )
         measured = measure(ctx, points, settings, batch)
+        # The render curve on the trained weights where there are some, else at init.
+        render_ws = next((ws for ws in sets if ws.name == "trained"), sets[0])
+        with tempfile.TemporaryDirectory(prefix="tradeoff-render-") as tmp:
+            render_rows, scenes, shipped = measure_render(ctx, render_ws, settings, Path(tmp))
         ctx.timers["evaluation"] += time.perf_counter() - t0
     finally:
         torch.set_num_threads(threads0)
     rows = [_row(p, m, settings, batch) for p, m in zip(points, measured, strict=True)]
-    report["rows"] = rows
+    curves = _step_curves(rows, sets, ctx.scale)
+    curves.update(_render_curves(render_rows, render_ws, scenes))
+    trained = next((ws for ws in sets if ws.name == "trained"), None)
+    curves["training"] = _training_entry(trained, ctx)
+    _mark_fronts(rows + render_rows, curves)
+    report["rows"] = rows + render_rows
+    report["curves"] = curves
     report["scale_settings"]["tradeoff"] = {
         **dataclasses.asdict(settings),
         "threads_used": settings.threads if settings.threads is not None else threads0,
@@ -543,6 +1205,16 @@ def run_tradeoff(ctx: Context) -> Path:
         for r in rows
         if not r["overrides"] and not r["reference"] and r["metrics"]["speedup"]
     ]
+    report["scale_settings"]["tradeoff"]["render"] = {
+        "weights": render_ws.name,
+        "scenes": scenes.name,
+        "n_scenes": len(scenes.scenes),
+        "ground_truth": scenes.ground_truth,
+        "why_no_ground_truth": scenes.why_no_truth,
+        "shipped_config": adapter.config_dict(shipped),
+        "early_stops": list(EARLY_STOPS),
+        "fine_min_weights": list(FINE_MIN_WEIGHTS),
+    }
     has_trained = any(ws.name == "trained" for ws in sets)
     report["notes"] = [
         "Weights: "
@@ -587,8 +1259,22 @@ def run_tradeoff(ctx: Context) -> Path:
             "speed-ups say little; the errors and the plumbing are what this scale checks."
         )
     report["notes"].extend(_summaries(rows, max(offs) if offs else None))
+    report["notes"].append(_render_note(render_rows, render_ws, scenes, settings))
+    report["notes"].extend(_front_notes(curves, report["rows"]))
     report["figures"] = [
-        tradeoff_chart(ctx.report_dir / "tradeoff.png", rows, ctx.scale, TOLERANCE["rgb_max_err"])
+        tradeoff_chart(ctx.report_dir / "tradeoff.png", rows, ctx.scale, TOLERANCE["rgb_max_err"]),
+        pareto_chart(
+            ctx.report_dir / "tradeoff_render.png",
+            report["rows"],
+            {k: c for k, c in curves.items() if c.get("kind") == "render"},
+            f"tradeoff ({ctx.scale}): evaluation render time per view vs quality, "
+            f"{render_ws.name} weights, {scenes.name}",
+        ),
     ]
+    if curves["training"].get("points"):
+        report["figures"].append(
+            training_chart(ctx.report_dir / "tradeoff_training.png", curves["training"])
+        )
     _log("\n" + format_table(rows))
+    _log("\n" + format_render_table(render_rows))
     return ctx.finish(report)
