@@ -279,7 +279,7 @@ def test_fronts_knees_and_shipped_defaults(smoke):
         assert d["id"] in c["points"] and d["on_front"] == (d["id"] in c["front"])
         assert d["on_front"] == (not d["dominated_by"])
         pts = [(i, by_id[i]["metrics"][c["x"]], by_id[i]["metrics"][c["y"]]) for i in c["points"]]
-        assert tradeoff.pareto_front(pts, c["timing_noise"]) == c["front"]
+        assert tradeoff.pareto_front(pts, c["timing_noise"], c["metric_eps"]) == c["front"]
         for i in c["points"]:
             assert (name in by_id[i]["on_front"]) == (i in c["front"])
     # smoke ships no speed knob: the step curves' default is the knob-free reference
@@ -296,6 +296,8 @@ def test_pareto_front_and_knee():
     # equal-error points within the timing noise do not dominate each other
     assert tradeoff.pareto_front([("x", 1.0, 0.0), ("y", 1.04, 0.0)], noise=0.05) == ["x", "y"]
     assert tradeoff.pareto_front([("x", 1.0, 0.0), ("y", 1.04, 0.0)]) == ["x"]
+    # nor do points whose errors differ by less than eps
+    assert tradeoff.pareto_front([("x", 1.0, 0.01), ("y", 1.0, 0.0)], eps=0.02) == ["x", "y"]
     assert tradeoff.knee_point([], []) is None
     c = tradeoff.curve_summary(
         [
@@ -339,8 +341,10 @@ def test_training_curve_from_a_run_log(tmp_path):
     sm = {p["id"]: p["train_psnr_smoothed"] for p in c["points"]}
     assert all(sm[a] < sm[b] for a, b in zip(c["front"], c["front"][1:]))
     end = c["points"][-1]["train_psnr_smoothed"]
-    knee = sm[c["knee"]]
-    assert knee >= end - tradeoff.TRAIN_KNEE_DB
+    ids = [p["id"] for p in c["points"]]
+    after = ids[ids.index(c["knee"]) :]
+    assert all(sm[i] >= end - tradeoff.TRAIN_KNEE_DB for i in after)
+    assert sm[ids[ids.index(c["knee"]) - 1]] < end - tradeoff.TRAIN_KNEE_DB
     assert c["points"][0]["wall_s"] < next(p["wall_s"] for p in c["points"] if p["id"] == c["knee"])
     assert c["held_out"] == [{"step": 500.0, "wall_s": 200.0, "nv_ari": 0.5}]
     from benchmark.figures import training_chart

@@ -33,7 +33,24 @@ Weights (each a table of its own, with its own baseline):
   ``full`` on clevr567, the same model config) where one exists; never trained here.
 
 Inputs are speedbench's batch (random images, rays from ~11.7 units into the scene box),
-not dataset scenes, so no dataset is needed; the report says so.
+not dataset scenes, so no dataset is needed; the report says so. These rows are the
+``"curve": "step"`` rows. Three more curves (issue 7):
+
+- ``render`` (rows ``"curve": "render"``): evaluation render time per view (svorf's
+  ``predict_scene``: encode, ``render_chunked``) over samples per ray, ``clip_to_box`` flipped,
+  ``eval_early_stop`` and ``eval_fine_min_weight`` (the evaluation-only knobs of
+  ``ModelConfig``), on the trained weights when there are some. Scored with
+  :mod:`benchmark.evaluate`'s functions against the ground truth of the clevr567 test split
+  (PSNR on the novel views, NV-ARI, NV-FG-ARI, FG-ARI) when the split is on disk and the
+  weights are trained; otherwise PSNR / NV-ARI are null with the reason and the curve's
+  error is the difference from the default render (on small analytic sphere scenes);
+- ``training``: training-batch PSNR against training wall time from the trained run's
+  ``log.jsonl`` (and held-out metrics from its ``eval.jsonl``); absent, with the reason,
+  without a trained run;
+- every curve has a Pareto front (times within the measured timing noise, and quality
+  differences below :data:`METRIC_EPS`, count as equal), a knee and the position of the
+  shipped default (``report["curves"]``; rows carry ``on_front``). Figures:
+  ``tradeoff.png`` (step), ``tradeoff_render.png``, ``tradeoff_training.png``.
 """
 
 from __future__ import annotations
@@ -508,16 +525,21 @@ def _summaries(rows: list[dict[str, Any]], noise_hi: float | None) -> list[str]:
 # Pareto fronts (every curve)
 
 
-def _dominates(a: tuple[float, float], b: tuple[float, float], noise: float) -> bool:
+def _dominates(
+    a: tuple[float, float], b: tuple[float, float], noise: float, eps: float = 0.0
+) -> bool:
     """Whether (time, error) ``a`` dominates ``b``: no worse on both axes and better on one,
-    where times within the relative timing ``noise`` of each other count as equal."""
+    where times within the relative timing ``noise`` of each other, and errors within
+    ``eps`` of each other, count as equal."""
     (ta, ea), (tb, eb) = a, b
     faster = ta < tb * (1.0 - noise)
     not_slower = ta <= tb * (1.0 + noise)
-    return (ea <= eb and faster) or (ea < eb and not_slower)
+    return (ea <= eb + eps and faster) or (ea < eb - eps and not_slower)
 
 
-def pareto_front(points: list[tuple[str, float, float]], noise: float = 0.0) -> list[str]:
+def pareto_front(
+    points: list[tuple[str, float, float]], noise: float = 0.0, eps: float = 0.0
+) -> list[str]:
     """Ids of the points no other point dominates, by increasing time.
 
     Args:
@@ -525,12 +547,15 @@ def pareto_front(points: list[tuple[str, float, float]], noise: float = 0.0) -> 
             quality metric).
         noise: relative timing noise: times within it count as equal (so a point is not
             dominated by an equal-error point that was only luckier on the clock).
+        eps: errors within it count as equal (e.g. 0.01 dB of PSNR).
     Returns:
         The ids of the front: no other point has time <= and error <= with one of them <.
     """
     front = []
     for pid, t, e in points:
-        if not any(_dominates((t2, e2), (t, e), noise) for qid, t2, e2 in points if qid != pid):
+        if not any(
+            _dominates((t2, e2), (t, e), noise, eps) for qid, t2, e2 in points if qid != pid
+        ):
             front.append((t, e, pid))
     return [pid for _, _, pid in sorted(front)]
 
@@ -568,11 +593,14 @@ def curve_summary(
     default_id: str | None,
     note: str,
     noise: float = 0.0,
+    eps: float | None = None,
 ) -> dict[str, Any] | None:
     """Front, knee and where ``default_id`` (the shipped default) sits, for ``rows`` on the
     axes ``metrics[x]`` (time, smaller is better) and ``metrics[y]``, times within the
-    relative ``noise`` counting as equal. Rows with a null on either axis are left out;
-    None when no row remains."""
+    relative ``noise`` and values of ``y`` within ``eps`` (default :data:`METRIC_EPS`, else
+    0) counting as equal. Rows with a null on either axis are left out; None when no row
+    remains."""
+    eps = METRIC_EPS.get(y, 0.0) if eps is None else eps
     pts = []
     for r in rows:
         tv, ev = r["metrics"].get(x), r["metrics"].get(y)
@@ -581,13 +609,14 @@ def curve_summary(
         pts.append((r["id"], float(tv), -float(ev) if higher_is_better else float(ev)))
     if not pts:
         return None
-    front = pareto_front(pts, noise)
+    front = pareto_front(pts, noise, eps)
     knee = knee_point(pts, front)
     out: dict[str, Any] = {
         "x": x,
         "y": y,
         "y_better": "higher" if higher_is_better else "lower",
         "timing_noise": noise,
+        "metric_eps": eps,
         "points": [p[0] for p in pts],
         "front": front,
         "knee": knee,
@@ -602,7 +631,7 @@ def curve_summary(
             "dominated_by": [
                 pid
                 for pid, t2, e2 in pts
-                if pid != default_id and _dominates((t2, e2), (t, e), noise)
+                if pid != default_id and _dominates((t2, e2), (t, e), noise, eps)
             ],
         }
     return out
@@ -613,6 +642,9 @@ def curve_summary(
 
 #: Smallest relative timing noise assumed when comparing times on a front.
 MIN_NOISE = 0.05
+#: Differences of a quality metric below which two points count as equally good on a
+#: front (report units: dB, ARI percent): below what a handful of test scenes resolves.
+METRIC_EPS: dict[str, float] = {"psnr": 0.01, "nv_ari": 0.5, "nv_fg_ari": 0.5, "fg_ari": 0.5}
 #: Thresholds swept for ``ModelConfig.eval_early_stop`` (transmittance).
 EARLY_STOPS = (1e-3, 1e-2, 5e-2, 0.2)
 #: Thresholds swept for ``ModelConfig.eval_fine_min_weight`` (coarse bin weight).
@@ -689,7 +721,7 @@ def _render_scenes(
     """The clevr567 test split at this scale when ``ws`` is trained on clevr567 and the split
     is complete on disk (scored against its ground truth); otherwise a small analytic
     sphere split written to ``tmp`` (scored against the default render only)."""
-    from benchmark.datasets import _complete, dataset_dir, ensure_dataset
+    from benchmark.datasets import dataset_dir, ensure_dataset
 
     n = settings.render_scenes
     root = dataset_dir(ctx.data, ctx.scale, "clevr567", "test")
@@ -697,9 +729,7 @@ def _render_scenes(
     if ws.name == "trained":
         why = f"no complete clevr567 test split at {root}"
         try:
-            complete = (root / "manifest.json").is_file() and _complete(
-                root, ctx.settings.n_scenes("clevr567", "test"), ctx.settings.resolution
-            )[0]
+            complete = _usable_as_found(root, ctx)
         except ValueError as err:  # another resolution
             complete, why = False, str(err)
         if complete:
@@ -710,8 +740,14 @@ def _render_scenes(
                 else "generator"
             )
             info = ensure_dataset(
-                ctx.data, ctx.settings, "clevr567", "test", source=source, progress=False
-            )  # complete: nothing is generated
+                ctx.data,
+                ctx.settings,
+                "clevr567",
+                "test",
+                source=source,
+                seed=ctx.seeds["data"],
+                progress=False,
+            )  # usable as found: nothing is generated
             ctx.datasets[("clevr567", "test")] = info
             ds = adapter.open_dataset(info.path)
             return RenderScenes(ds, list(range(min(n, len(ds)))), info.name, True)
@@ -732,6 +768,32 @@ def _render_scenes(
         False,
         why,
     )
+
+
+def _usable_as_found(root: Path, ctx: Context) -> bool:
+    """Whether :func:`benchmark.datasets.ensure_dataset` would use the split at ``root``
+    without generating anything: complete at this scale, or a generator split with other
+    render settings whose own scenes are complete (its "complete as found" rule)."""
+    from benchmark.datasets import (
+        _complete,
+        _deviations,
+        _nominal,
+        _own_scenes_complete,
+        _render_of,
+    )
+
+    if not (root / "manifest.json").is_file():
+        return False
+    n = ctx.settings.n_scenes("clevr567", "test")
+    if _complete(root, n, ctx.settings.resolution)[0]:
+        return True
+    manifest = json.loads((root / "manifest.json").read_text())
+    if str(manifest.get("generator", "")).startswith("svorf.synthetic"):
+        return False
+    samples, denoise, seed = _render_of(manifest)
+    nominal = _nominal(ctx.settings, n, ctx.seeds["data"], "generator")
+    same = {"render_samples": samples, "denoise": denoise, "seed": seed}
+    return bool(_deviations(nominal, same)) and _own_scenes_complete(root, manifest)
 
 
 def _build(ws: WeightSet, cfg: Any) -> Any:
@@ -854,9 +916,11 @@ def _shipped(ctx: Context) -> Any:
 # ---------------------------------------------------------------------------------------------
 # Training curve: metric against wall-clock training time, from a run's logs
 
-#: Log lines averaged (centred running mean) to smooth the per-batch training PSNR.
+#: Log lines averaged (centred running mean) to smooth the per-batch training PSNR: at
+#: least this many, or 1/20 of the log.
 TRAIN_SMOOTH = 9
-#: The knee of the training curve: first time the smoothed PSNR is within this of its end.
+#: The knee of the training curve: the first time after which the smoothed PSNR stays
+#: within this of its last value.
 TRAIN_KNEE_DB = 0.5
 
 
@@ -880,8 +944,9 @@ def training_curve(run_dir: Path, run_key: str | None = None) -> dict[str, Any] 
     Reads ``log.jsonl`` (step, wall_s, parts.psnr, loss) and ``eval.jsonl`` (step, wall_s,
     held-out metrics) of an svorf run folder; ``wall_s`` is training time (evaluation and
     checkpoint writes excluded, svorf.train). The front is the running best of the smoothed
-    PSNR; the knee is the first point within :data:`TRAIN_KNEE_DB` dB of the last smoothed
-    value; the shipped default is the last point (the run's training budget).
+    PSNR; the knee is the first point after which the smoothed PSNR stays within
+    :data:`TRAIN_KNEE_DB` dB of its last value; the shipped default is the last point (the
+    run's training budget).
 
     Returns:
         The curve dict, or None when the run has no usable log.
@@ -895,7 +960,8 @@ def training_curve(run_dir: Path, run_key: str | None = None) -> dict[str, Any] 
     if len(log) < 2:
         return None
     psnr = [float(r["parts"]["psnr"]) for r in log]
-    h = TRAIN_SMOOTH // 2
+    window = max(TRAIN_SMOOTH, len(psnr) // 20)
+    h = window // 2
     smooth = [statistics.fmean(psnr[max(0, i - h) : i + h + 1]) for i in range(len(psnr))]
     points = [
         {
@@ -914,7 +980,10 @@ def training_curve(run_dir: Path, run_key: str | None = None) -> dict[str, Any] 
             best = pt["train_psnr_smoothed"]
             front.append(pt["id"])
     end = points[-1]["train_psnr_smoothed"]
-    knee = next(pt for pt in points if pt["train_psnr_smoothed"] >= end - TRAIN_KNEE_DB)
+    k = len(points) - 1  # walk back while the curve stays within TRAIN_KNEE_DB of its end
+    while k > 0 and points[k - 1]["train_psnr_smoothed"] >= end - TRAIN_KNEE_DB:
+        k -= 1
+    knee = points[k]
     held = []
     for r in _read_jsonl(run_dir / "eval.jsonl"):
         if not isinstance(r.get("wall_s"), (int, float)):
@@ -932,6 +1001,7 @@ def training_curve(run_dir: Path, run_key: str | None = None) -> dict[str, Any] 
         "x": "wall_s",
         "y": "train_psnr_smoothed",
         "y_better": "higher",
+        "smoothing_lines": window,
         "points": points,
         "front": front,
         "knee": knee["id"],
@@ -944,9 +1014,10 @@ def training_curve(run_dir: Path, run_key: str | None = None) -> dict[str, Any] 
         "held_out": held,
         "note": (
             f"Training-batch PSNR (the fine pass's MSE on the sampled rays, running mean over "
-            f"{TRAIN_SMOOTH} log lines) against training wall time (evaluation and checkpoint "
-            f"writes excluded). Knee: the first point within {TRAIN_KNEE_DB:g} dB of the last "
-            f"smoothed value ({knee['wall_s'] / 60:.1f} of {points[-1]['wall_s'] / 60:.1f} min, "
+            f"{window} log lines) against training wall time (evaluation and checkpoint "
+            f"writes excluded). Knee: the first point after which the smoothed PSNR stays "
+            f"within {TRAIN_KNEE_DB:g} dB of its last value "
+            f"({knee['wall_s'] / 60:.1f} of {points[-1]['wall_s'] / 60:.1f} min, "
             f"step {knee['step']} of {points[-1]['step']}). The shipped default is the run's "
             "budget, its last point. "
             + (
