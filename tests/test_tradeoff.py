@@ -297,7 +297,7 @@ def test_pareto_front_and_knee():
     assert tradeoff.pareto_front([("x", 1.0, 0.0), ("y", 1.04, 0.0)], noise=0.05) == ["x", "y"]
     assert tradeoff.pareto_front([("x", 1.0, 0.0), ("y", 1.04, 0.0)]) == ["x"]
     # nor do points whose errors differ by less than eps
-    assert tradeoff.pareto_front([("x", 1.0, 0.01), ("y", 1.0, 0.0)], eps=0.02) == ["x", "y"]
+    assert tradeoff.pareto_front([("x", 1.0, 0.01), ("y", 1.0, 0.0)], eps=0.02) == ["y", "x"]
     assert tradeoff.knee_point([], []) is None
     c = tradeoff.curve_summary(
         [
