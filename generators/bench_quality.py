@@ -40,8 +40,24 @@ def psnr8(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def run(
-    preset_name: str, n_scenes: int, resolution: int, ref_samples: int, threads: int
+    preset_name: str,
+    n_scenes: int,
+    resolution: int,
+    ref_samples: int,
+    threads: int,
+    candidates: list[tuple[str, dict]] | None = None,
 ) -> list[dict]:
+    """Render ``n_scenes`` test scenes of the preset with the reference and every candidate.
+
+    Args:
+        candidates: (label, RenderSettings overrides) pairs; None = :data:`CANDIDATES`.
+
+    Returns:
+        One row per candidate: label, settings, ``s_per_view`` (Cycles render seconds),
+        ``psnr_db`` (8-bit sRGB against the reference, mean over views) and
+        ``masks_identical`` / ``depth_identical``: whether every view's instance ids and
+        planar depth equal the reference render's exactly.
+    """
     from generators.blender_backend import BlenderSession
     from generators.imageops import linear_to_srgb8
     from generators.presets import get_preset
@@ -53,23 +69,28 @@ def run(
     specs = [make_scene(preset, "test", i, 0, base) for i in range(n_scenes)]
     ref_settings = replace(base, samples=ref_samples, denoise=False, max_bounces=8, diffuse_bounces=8,
                            glossy_bounces=4)  # fmt: skip
-    refs = []
+    refs, ref_passes = [], []
     for s in specs:
-        refs.append(
-            [linear_to_srgb8(v.rgb_linear) for v in sess.render_scene(s.with_render(ref_settings))]
-        )
+        views = sess.render_scene(s.with_render(ref_settings))
+        refs.append([linear_to_srgb8(v.rgb_linear) for v in views])
+        ref_passes.append([(v.ids, v.depth_z) for v in views])
     rows = []
-    for label, kw in CANDIDATES:
+    for label, kw in CANDIDATES if candidates is None else candidates:
         settings = replace(base, **kw)
         times, psnrs = [], []
-        for s, ref in zip(specs, refs, strict=True):
+        masks_same = depth_same = True
+        for s, ref, passes in zip(specs, refs, ref_passes, strict=True):
             views = sess.render_scene(s.with_render(settings))
             times += [v.render_s for v in views]
             psnrs += [
                 psnr8(linear_to_srgb8(v.rgb_linear), r) for v, r in zip(views, ref, strict=True)
             ]
+            for v, (ids, depth) in zip(views, passes, strict=True):
+                masks_same &= bool(np.array_equal(v.ids, ids))
+                depth_same &= bool(np.array_equal(v.depth_z, depth, equal_nan=True))
         row = {"label": label, "settings": asdict(settings), "s_per_view": float(np.mean(times)),
-               "psnr_db": float(np.mean(psnrs))}  # fmt: skip
+               "psnr_db": float(np.mean(psnrs)), "masks_identical": masks_same,
+               "depth_identical": depth_same}  # fmt: skip
         rows.append(row)
         print(f"{label:24s} {np.mean(times):6.3f} s/view  {np.mean(psnrs):6.2f} dB", flush=True)
     sess.close()

@@ -17,6 +17,7 @@ from benchmark.cli import main as cli_main
 from benchmark.protocols import tradeoff
 from benchmark.runner import Context, ModelJob
 from benchmark.schema import validate_report
+from generators.blender_backend import bpy_available
 
 ERRORS = ("rgb_max_err", "rgb_mean_err", "depth_mean_err", "slot_probs_max_err")
 KNOBS_INIT = {"bf16_autocast", "slot_keep_mass", "slot_topk", "fg_box", "samples_per_ray"}
@@ -139,7 +140,8 @@ def test_baseline_and_exact_points(smoke):
 def test_figure_and_page(smoke):
     path, rep = smoke
     # no trained run: no training curve, so no training figure
-    assert rep["figures"] == ["tradeoff.png", "tradeoff_render.png"]
+    gen = ["tradeoff_generator.png"] if bpy_available() else []
+    assert rep["figures"] == ["tradeoff.png", "tradeoff_render.png", *gen]
     from PIL import Image
 
     for name in rep["figures"]:
@@ -196,18 +198,18 @@ def _trained_run_case(out: Path, data: Path, monkeypatch) -> None:
     monkeypatch.setitem(
         tradeoff.SETTINGS,
         "smoke",
-        tradeoff.TradeoffSettings(repeats=1, warmup=0, threads=1, sharp=False),
+        tradeoff.TradeoffSettings(repeats=1, warmup=0, threads=1, sharp=False, generator=False),
     )
     ctx = Context("tradeoff", "smoke", out, data, progress=False)
     rep = json.loads(tradeoff.run_tradeoff(ctx).read_text())
     validate_report(rep)
-    trained = [r for r in rep["rows"] if r["weights"] == "trained"]
+    trained = [r for r in _step(rep["rows"]) if r["weights"] == "trained"]
     assert trained and all(r["run_key"] == rec.key for r in trained)
     assert {r["knob"] for r in trained} >= KNOBS_INIT
     ref = next(r for r in trained if r["reference"])
     assert all(ref["metrics"][k] == 0.0 for k in ERRORS)
     assert any(rec.key in n for n in rep["notes"])
-    assert not any("sharp-m" == r["weights"] for r in rep["rows"])
+    assert not any("sharp-m" == r.get("weights") for r in rep["rows"])
     # render curve: the trained weights against the test split's ground truth
     render = _render(rep["rows"])
     assert render and all(r["weights"] == "trained" and r["ground_truth"] for r in render)
@@ -220,6 +222,7 @@ def _trained_run_case(out: Path, data: Path, monkeypatch) -> None:
         rep["curves"]
     )
     assert any(d["split"] == "test" for d in rep["datasets"])
+    assert "generator=False" in rep["curves"]["generator"]["absent"]
     train = rep["curves"]["training"]
     assert train.get("points") or "no usable log" in train["absent"]
 
@@ -267,18 +270,23 @@ def test_fronts_knees_and_shipped_defaults(smoke):
         "render: init weights, rgb_mean_err",
         "render: init weights, labels_changed",
         "training",
+        "generator",
     }
     assert "no finished benchmark run" in curves["training"]["absent"]
     by_id = {r["id"]: r for r in rep["rows"]}
     for name, c in curves.items():
-        if name == "training":
+        if name == "training" or "absent" in c:
             continue
         assert c["front"] and set(c["front"]) <= set(c["points"])
-        assert c["knee"] in c["front"]
+        assert c["knee"] is None or c["knee"] in c["front"]
         d = c["shipped_default"]
         assert d["id"] in c["points"] and d["on_front"] == (d["id"] in c["front"])
         assert d["on_front"] == (not d["dominated_by"])
-        pts = [(i, by_id[i]["metrics"][c["x"]], by_id[i]["metrics"][c["y"]]) for i in c["points"]]
+        sign = -1.0 if c["y_better"] == "higher" else 1.0
+        pts = [
+            (i, by_id[i]["metrics"][c["x"]], sign * by_id[i]["metrics"][c["y"]])
+            for i in c["points"]
+        ]
         assert tradeoff.pareto_front(pts, c["timing_noise"], c["metric_eps"]) == c["front"]
         for i in c["points"]:
             assert (name in by_id[i]["on_front"]) == (i in c["front"])
@@ -299,6 +307,8 @@ def test_pareto_front_and_knee():
     # nor do points whose errors differ by less than eps
     assert tradeoff.pareto_front([("x", 1.0, 0.01), ("y", 1.0, 0.0)], eps=0.02) == ["y", "x"]
     assert tradeoff.knee_point([], []) is None
+    line = [("a", 1.0, 3.0), ("b", 2.0, 2.5), ("c", 4.0, 1.0)]  # b above the chord: no knee
+    assert tradeoff.knee_point(line, tradeoff.pareto_front(line)) is None
     c = tradeoff.curve_summary(
         [
             {"id": "p", "metrics": {"t": 1.0, "q": 20.0}},
@@ -352,3 +362,29 @@ def test_training_curve_from_a_run_log(tmp_path):
     assert training_chart(tmp_path / "t.png", c) == "t.png"
     assert (tmp_path / "t.png").stat().st_size > 10_000
     assert tradeoff.training_curve(tmp_path, None) is None  # no log
+
+
+# ----------------------------------------------------------------------------- generator curve
+
+
+def test_generator_curve(smoke):
+    """Seconds per view against PSNR vs a high-sample render over samples, denoiser and
+    bounces (generators.bench_quality), masks and depth identical at every point."""
+    _, rep = smoke
+    c = rep["curves"]["generator"]
+    rows = [r for r in rep["rows"] if r["curve"] == "generator"]
+    if not bpy_available():
+        assert "bpy" in c["absent"] and not rows
+        return
+    assert {r["knob"] for r in rows} == {"default", "samples", "denoiser", "bounces"}
+    assert len(rows) == len(tradeoff.GENERATOR_CANDIDATES)
+    assert c["masks_and_depth_identical"] is True
+    assert all(r["masks_identical"] and r["depth_identical"] for r in rows)
+    ref = next(r for r in rows if r["reference"])
+    assert c["shipped_default"]["id"] == ref["id"]
+    assert ref["render_settings"]["samples"] == 8 and ref["render_settings"]["denoise"]
+    psnr = {r["setting"]: r["metrics"]["psnr"] for r in rows}
+    assert 25 < psnr["1spp+oidn"] < psnr["16spp+oidn"]  # more samples, closer to reference
+    assert all(r["metrics"]["render_s_per_view"] > 0 for r in rows)
+    info = rep["scale_settings"]["tradeoff"]["generator"]
+    assert info["resolution"] == 32 and info["reference_samples"] == 64

@@ -55,6 +55,7 @@ not dataset scenes, so no dataset is needed; the report says so. These rows are 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -122,6 +123,9 @@ class TradeoffSettings:
         sharp: add the ``sharp-m`` weight set.
         render_scenes: test scenes each point of the render curve renders (every view).
         render_repeats: timed interleaved repeats of the render curve.
+        generator_scenes: clevr567 test scenes of the generator curve (every view).
+        generator_ref_samples: samples per pixel of its reference render.
+        generator: measure the generator curve (needs bpy).
     """
 
     repeats: int
@@ -130,6 +134,9 @@ class TradeoffSettings:
     sharp: bool = True
     render_scenes: int = 2
     render_repeats: int = 1
+    generator_scenes: int = 1
+    generator_ref_samples: int = 64
+    generator: bool = True
 
 
 SETTINGS: dict[str, TradeoffSettings] = {
@@ -137,9 +144,26 @@ SETTINGS: dict[str, TradeoffSettings] = {
     "smoke": TradeoffSettings(repeats=3, warmup=1, threads=1),
     # The cpu-scale model and batch (4 x 128 rays) on a 2-core machine: minutes; the render
     # curve renders 4 test scenes x 4 views at 64x64 per point (~0.3-0.6 s per view).
-    "cpu": TradeoffSettings(repeats=7, warmup=2, threads=2, render_scenes=4, render_repeats=2),
+    # The generator curve: 2 scenes x 4 views at 64x64 against a 512-sample reference.
+    "cpu": TradeoffSettings(
+        repeats=7,
+        warmup=2,
+        threads=2,
+        render_scenes=4,
+        render_repeats=2,
+        generator_scenes=2,
+        generator_ref_samples=512,
+    ),
     # The paper's model and batch (16 x 64 rays); meant for a GPU.
-    "paper": TradeoffSettings(repeats=5, warmup=2, threads=None, render_scenes=8, render_repeats=2),
+    "paper": TradeoffSettings(
+        repeats=5,
+        warmup=2,
+        threads=None,
+        render_scenes=8,
+        render_repeats=2,
+        generator_scenes=4,
+        generator_ref_samples=512,
+    ),
 }
 
 
@@ -563,7 +587,9 @@ def pareto_front(
 def knee_point(points: list[tuple[str, float, float]], front: list[str]) -> str | None:
     """The front's knee: the point farthest below the chord from its fastest to its most
     accurate end, both axes scaled to [0, 1] over the front (time on a log axis). None for
-    an empty front; the single point of a one-point front; with two, the faster one."""
+    an empty front and for a front with no point below that chord (no knee: each step to
+    a slower point buys at least as much as the last); the single point of a one-point
+    front; with two, the faster one."""
     if not front:
         return None
     if len(front) <= 2:
@@ -582,7 +608,7 @@ def knee_point(points: list[tuple[str, float, float]], front: list[str]) -> str 
     n = math.hypot(x1 - x0, y1 - y0) or 1.0
     dist = [((x1 - x0) * (y0 - yi) - (xi - x0) * (y0 - y1)) / n for xi, yi in zip(x, y)]
     best = max(range(len(front)), key=lambda i: dist[i])
-    return front[best] if dist[best] > 0 else front[0]
+    return front[best] if dist[best] > 0 else None
 
 
 def curve_summary(
@@ -1169,7 +1195,13 @@ def _front_notes(curves: dict[str, dict[str, Any]], rows: list[dict[str, Any]]) 
         out.append(
             f"Curve '{name}' ({c['x']} vs {c['y']}, {c['y_better']} is better): front = "
             + ", ".join(label[i] for i in c["front"])
-            + f"; knee = {label.get(c['knee'], c['knee'])}; the shipped default is {where}."
+            + "; knee = "
+            + (
+                label[c["knee"]]
+                if c["knee"] is not None
+                else "none (no front point below the chord of its ends)"
+            )
+            + f"; the shipped default is {where}."
         )
     return out
 
@@ -1214,6 +1246,142 @@ def format_render_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+# ---------------------------------------------------------------------------------------------
+# Generator curve: Cycles seconds per view against image error (generators.bench_quality)
+
+#: (label, RenderSettings overrides) of the generator curve; the first is the shipped
+#: default (``RenderSettings()`` at the scale's resolution), the second the same again (its
+#: speed-up is the timing noise).
+GENERATOR_CANDIDATES: list[tuple[str, dict[str, Any]]] = [
+    ("default (8spp+oidn, 4 bounces)", {}),
+    ("default (timed again)", {}),
+    ("1spp+oidn", {"samples": 1}),
+    ("4spp+oidn", {"samples": 4}),
+    ("16spp+oidn", {"samples": 16}),
+    ("32spp+oidn", {"samples": 32}),
+    ("8spp raw", {"denoise": False}),
+    ("64spp raw", {"samples": 64, "denoise": False}),
+    ("8spp+oidn q=FAST", {"denoise_quality": "FAST"}),
+    ("8spp+oidn q=HIGH", {"denoise_quality": "HIGH"}),
+    ("8spp+oidn 1 bounce", {"max_bounces": 1, "diffuse_bounces": 1}),
+    ("8spp+oidn 2 bounces", {"max_bounces": 2, "diffuse_bounces": 2}),
+    ("8spp+oidn 8 bounces", {"max_bounces": 8, "diffuse_bounces": 8}),
+]
+
+
+def _generator_knob(overrides: dict[str, Any]) -> str:
+    if not overrides:
+        return "default"
+    if "denoise" in overrides or "denoise_quality" in overrides:
+        return "denoiser"
+    if "max_bounces" in overrides:
+        return "bounces"
+    return "samples"
+
+
+def measure_generator(
+    ctx: Context, settings: TradeoffSettings
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The generator curve: :func:`generators.bench_quality.run` over
+    :data:`GENERATOR_CANDIDATES` on the first ``settings.generator_scenes`` clevr567 test
+    scenes at the scale's resolution, against a ``settings.generator_ref_samples``-sample
+    reference render (no denoiser, 8 bounces) of the same views.
+
+    Returns:
+        (rows, info); no rows and ``info["absent"]`` when bpy is not installed.
+    """
+    from generators.blender_backend import bpy_available
+
+    res = int(ctx.settings.resolution)
+    n, ref = settings.generator_scenes, settings.generator_ref_samples
+    info: dict[str, Any] = {
+        "preset": "clevr567",
+        "scenes": n,
+        "resolution": res,
+        "reference_samples": ref,
+        "candidates": [{"label": lab, "overrides": kw} for lab, kw in GENERATOR_CANDIDATES],
+    }
+    if not settings.generator:
+        info["absent"] = "turned off in the tradeoff settings of this scale (generator=False)"
+        return [], info
+    if not bpy_available():
+        info["absent"] = "bpy (Blender as a Python module) is not installed: no generator curve"
+        return [], info
+    from generators import bench_quality
+
+    threads = settings.threads or 1
+    with contextlib.redirect_stdout(sys.stderr):  # its per-candidate lines: progress only
+        raw = bench_quality.run("clevr567", n, res, ref, threads, GENERATOR_CANDIDATES)
+    table = "tradeoff generator: Cycles render settings"
+    dataset = (
+        f"clevr567 test scenes 0..{n - 1} (generator specs, {res}px), reference {ref} spp "
+        "without denoiser, 8 bounces"
+    )
+    t_ref = raw[0]["s_per_view"]
+    rows = []
+    for (label, kw), r in zip(GENERATOR_CANDIDATES, raw, strict=True):
+        metrics: dict[str, float | None] = {
+            "render_s_per_view": r["s_per_view"],
+            "speedup": t_ref / r["s_per_view"] if r["s_per_view"] > 0 else None,
+            "psnr": r["psnr_db"] if math.isfinite(r["psnr_db"]) else None,
+        }
+        reasons = {
+            k: "non_finite (identical images, or no time)" for k, v in metrics.items() if v is None
+        }
+        rows.append(
+            {
+                "id": row_id(table, label, dataset, "measured"),
+                "table": table,
+                "model": label,
+                "dataset": dataset,
+                "variant": "generator",
+                "source": "measured",
+                "metrics": metrics,
+                "null_reasons": reasons,
+                "n_scenes": n,
+                "curve": "generator",
+                "knob": _generator_knob(kw),
+                "setting": label,
+                "overrides": kw,
+                "reference": label == GENERATOR_CANDIDATES[0][0],
+                "exact_by_construction": label == GENERATOR_CANDIDATES[1][0],
+                "render_settings": r["settings"],
+                "masks_identical": r["masks_identical"],
+                "depth_identical": r["depth_identical"],
+            }
+        )
+    info["masks_and_depth_identical"] = all(
+        r["masks_identical"] and r["depth_identical"] for r in rows
+    )
+    return rows, info
+
+
+def _generator_curve(rows: list[dict[str, Any]], info: dict[str, Any]) -> dict[str, Any]:
+    if not rows:
+        return {"kind": "generator", "absent": info["absent"]}
+    ref = next(r["id"] for r in rows if r["reference"])
+    noise = _noise([r["metrics"]["speedup"] for r in rows if r["exact_by_construction"]])
+    c = curve_summary(
+        rows,
+        "render_s_per_view",
+        "psnr",
+        True,
+        ref,
+        "Cycles render seconds per view (one pass per candidate, not interleaved) against the "
+        "PSNR of the 8-bit sRGB image vs the high-sample reference render of the same view "
+        "(generators.bench_quality); the shipped default is generators.spec.RenderSettings() "
+        "at this resolution. masks_identical / depth_identical: the instance-id and planar "
+        "depth passes equal the reference's exactly at that point.",
+        noise,
+    )
+    assert c is not None  # the default always has a time and a finite PSNR or a reason
+    return {
+        "kind": "generator",
+        **c,
+        "masks_and_depth_identical": info["masks_and_depth_identical"],
+    }
+
+
 def run_tradeoff(ctx: Context) -> Path:
     """Measure every knob's time-vs-error curve at ``ctx.scale``; write the report."""
     from benchmark.figures import pareto_chart, tradeoff_chart, training_chart
@@ -1242,6 +1410,9 @@ def run_tradeoff(ctx: Context) -> Path:
         with tempfile.TemporaryDirectory(prefix="tradeoff-render-") as tmp:
             render_rows, scenes, shipped = measure_render(ctx, render_ws, settings, Path(tmp))
         ctx.timers["evaluation"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        gen_rows, gen_info = measure_generator(ctx, settings)
+        ctx.timers["data"] += time.perf_counter() - t0
     finally:
         torch.set_num_threads(threads0)
     rows = [_row(p, m, settings, batch) for p, m in zip(points, measured, strict=True)]
@@ -1249,8 +1420,9 @@ def run_tradeoff(ctx: Context) -> Path:
     curves.update(_render_curves(render_rows, render_ws, scenes))
     trained = next((ws for ws in sets if ws.name == "trained"), None)
     curves["training"] = _training_entry(trained, ctx)
-    _mark_fronts(rows + render_rows, curves)
-    report["rows"] = rows + render_rows
+    curves["generator"] = _generator_curve(gen_rows, gen_info)
+    _mark_fronts(rows + render_rows + gen_rows, curves)
+    report["rows"] = rows + render_rows + gen_rows
     report["curves"] = curves
     report["scale_settings"]["tradeoff"] = {
         **dataclasses.asdict(settings),
@@ -1286,6 +1458,7 @@ def run_tradeoff(ctx: Context) -> Path:
         "early_stops": list(EARLY_STOPS),
         "fine_min_weights": list(FINE_MIN_WEIGHTS),
     }
+    report["scale_settings"]["tradeoff"]["generator"] = gen_info
     has_trained = any(ws.name == "trained" for ws in sets)
     report["notes"] = [
         "Weights: "
@@ -1346,6 +1519,28 @@ def run_tradeoff(ctx: Context) -> Path:
         report["figures"].append(
             training_chart(ctx.report_dir / "tradeoff_training.png", curves["training"])
         )
+    if gen_rows:
+        report["figures"].append(
+            pareto_chart(
+                ctx.report_dir / "tradeoff_generator.png",
+                report["rows"],
+                {"generator": curves["generator"]},
+                f"tradeoff ({ctx.scale}): Cycles seconds per view vs PSNR against a "
+                f"{settings.generator_ref_samples}-sample reference (masks and depth identical "
+                f"at every point: {gen_info['masks_and_depth_identical']})",
+            )
+        )
+        if not gen_info["masks_and_depth_identical"]:
+            report["notes"].append(
+                "Generator curve: the masks or depth of some point differ from the reference "
+                "render's: "
+                + ", ".join(
+                    r["model"]
+                    for r in gen_rows
+                    if not (r["masks_identical"] and r["depth_identical"])
+                )
+                + "."
+            )
     _log("\n" + format_table(rows))
     _log("\n" + format_render_table(render_rows))
     return ctx.finish(report)
