@@ -843,7 +843,7 @@ def measure_render(
     shipped = ws.shipped if ws.shipped is not None else _shipped(ctx)
     points = render_points(shipped)
     scenes = _render_scenes(ctx, ws, settings, tmp)
-    models = [_build(ws, shipped.replace(**p.overrides)) for p in points]
+    models = [_build(ws, shipped.replace(**p.overrides)).to(ctx.device) for p in points]
     preds: list[list[Any]] = [[] for _ in points]
     views = 0
     for m in models:  # warm-up (allocator, caches), untimed
