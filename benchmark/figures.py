@@ -24,6 +24,7 @@ __all__ = [
     "pareto_chart",
     "qualitative_grid",
     "speed_chart",
+    "speed_compare_chart",
     "stability_chart",
     "tradeoff_chart",
     "training_chart",
@@ -232,6 +233,74 @@ def speed_chart(path: str | os.PathLike, rows: list[dict[str, Any]], scale: str)
     fig.suptitle(
         "tab:time: training memory and one CLEVR-567 epoch at batch 1 (paper: V100)", fontsize=10
     )
+    _save(fig, path)
+    return path.name
+
+
+def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], scale: str) -> str:
+    """sVORF against the uORF-style configuration (table ``speed_vs_uorf``), one run.
+
+    Left: median training step time; right: peak memory and the memory the training steps
+    add (``train_memory_mb``). The title gives the measured ratios beside the paper's
+    (Table 8) and issue 7's targets, from the ratio row.
+
+    Args:
+        path: Output PNG.
+        rows: report rows (those of table ``speed_vs_uorf`` are drawn).
+        scale: the measured scale (for labels).
+
+    Returns:
+        The file name of ``path``.
+    """
+    plt = _plt()
+    path = Path(path)
+    sel = [r for r in rows if r["table"] == "speed_vs_uorf" and r.get("variant") != "ratio"]
+    ratio = next(
+        (r for r in rows if r["table"] == "speed_vs_uorf" and r.get("variant") == "ratio"), None
+    )
+    labels = [r["model"].replace(" (", "\n(") for r in sel]
+    colors = ["#1f77b4", "#ff7f0e"][: len(sel)]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    ax = axes[0]
+    vals = [r["metrics"].get("step_time_s") for r in sel]
+    ax.bar(range(len(sel)), [np.nan if v is None else v for v in vals], color=colors)
+    for i, v in enumerate(vals):
+        ax.text(
+            i, v or 0.0, "null" if v is None else f"{v:.3g} s", ha="center", va="bottom", fontsize=7
+        )
+    ax.set_title("median training step (s)", fontsize=9)
+    ax = axes[1]
+    x = np.arange(len(sel))
+    for off, key, hatch in ((-0.2, "peak_memory_mb", ""), (0.2, "train_memory_mb", "//")):
+        vals = [r["metrics"].get(key) for r in sel]
+        ax.bar(x + off, [np.nan if v is None else v for v in vals], 0.4, color=colors,
+               hatch=hatch, edgecolor="k", lw=0.5, label=key)  # fmt: skip
+        for i, v in enumerate(vals):
+            ax.text(i + off, v or 0.0, "null" if v is None else f"{v:.0f}", ha="center",
+                    va="bottom", fontsize=7)  # fmt: skip
+    ax.legend(fontsize=7, frameon=False)
+    ax.set_title("memory (MiB): peak / added by training", fontsize=9)
+    for ax in axes:
+        ax.set_xticks(range(len(sel)))
+        ax.set_xticklabels(labels, fontsize=7)
+    title = f"sVORF vs uORF-style configuration of the same code ({scale}, one run)"
+    if ratio is not None:
+        m, paper, goal = ratio["metrics"], ratio.get("paper", {}), ratio.get("targets", {})
+
+        def fmt(k: str) -> str:
+            v = m.get(k)
+            extra = []
+            if k in paper:
+                extra.append(f"paper {paper[k]:.2f}x")
+            if k in goal:
+                extra.append(f"target {goal[k]:g}x")
+            tail = f" ({', '.join(extra)})" if extra else ""
+            return f"{k} " + ("null" if v is None else f"{v:.2f}x") + tail
+
+        title += "\n" + "; ".join(
+            fmt(k) for k in ("step_time_ratio", "memory_ratio", "train_memory_ratio")
+        )
+    fig.suptitle(title, fontsize=9, y=1.04)
     _save(fig, path)
     return path.name
 

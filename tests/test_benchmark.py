@@ -524,9 +524,25 @@ def test_speed_protocol_on_synthetic_data(tmp_path):
         progress=False,
     )
     report = json.loads(run_speed(ctx).read_text())
-    m = [r for r in report["rows"] if r["source"] == "measured"]
+    rows = report["rows"]
+    m = [r for r in rows if r["source"] == "measured" and r["table"] in ("tab:time", "speed")]
     assert len(m) == 2 and all(r["metrics"]["steps_per_s"] > 0 for r in m)
     assert m[0]["metrics"]["memory_gb"] > 0 and m[0]["metrics"]["render_s_per_view"] > 0
+    # sVORF vs the uORF-style configuration, measured side by side in this run
+    cmp = {r["variant"]: r for r in rows if r["table"] == "speed_vs_uorf"}
+    assert set(cmp) == {"full", "uorf_style", "ratio"}
+    assert cmp["full"]["rays_per_scene"] < cmp["uorf_style"]["rays_per_scene"] == 32 * 32
+    assert cmp["full"]["batch_scenes"] == cmp["uorf_style"]["batch_scenes"] == 1
+    ratio = cmp["ratio"]
+    assert ratio["metrics"]["step_time_ratio"] > 0 and ratio["metrics"]["memory_ratio"] > 0
+    assert set(ratio["target_met"]) == {"step_time_ratio", "memory_ratio"}
+    # inference images/s; the generator is null with a reason on synthetic data
+    inf = [r for r in rows if r["table"] == "speed_inference"]
+    assert len(inf) == 2 and all(r["metrics"]["images_per_s"] > 0 for r in inf)
+    gen = [r for r in rows if r["table"] == "speed_generator"]
+    assert gen and gen[0]["metrics"]["overhead_ratio"] is None
+    assert "synthetic" in gen[0]["null_reasons"]["overhead_ratio"]
+    assert report["figures"] == ["speed.png", "speed_vs_uorf.png"]
 
 
 def _generator_ready() -> bool:

@@ -1,7 +1,29 @@
-"""Subprocess of the ``speed`` protocol: one timed training + render measurement.
+"""Subprocess of the ``speed`` protocol: one timed training (+ render) measurement.
 
 Run as ``python -m benchmark.protocols._speed_worker '<json args>'``; prints one
 JSON line. A separate process so that its peak memory is this measurement's alone.
+
+Args (JSON object): ``scale``, ``train_preset``, ``variant``, ``seed``, ``device``,
+``batch_scenes`` (None = the scale's), ``warmup``, ``steps``, ``train_dir``,
+``test_dir``, ``work``, and optionally:
+
+- ``style``: ``"svorf"`` (default: the scale's config, R random rays per scene) or
+  ``"uorf"``: the uORF-style configuration of the same code (:func:`uorf_style`):
+  every pixel of one target view per scene per step, density-weighted composition,
+  slot-conditioned MLP (no hypernetwork); everything else as ``"svorf"``.
+- ``render``: also time novel-view and segmentation rendering (default True).
+- ``max_memory_mb``: address-space limit (``RLIMIT_AS``) of this process, so that a
+  configuration too large for the machine fails here (reported as ``error``) instead
+  of pushing other processes into the out-of-memory killer.
+
+Memory: ``peak_memory_mb`` (CPU: peak RSS of this process; CUDA:
+``max_memory_allocated`` over the timed steps) and ``train_memory_mb``, that peak minus
+the memory in use when the first training step starts (dataset, model and optimizer
+built; recorded by a global module forward pre-hook).
+
+Step times: the timed steps' own durations from svorf's ``log.jsonl`` (``log_every=1``:
+``1 / steps_per_s`` of each line; data sampling, forward, backward and the optimizer
+step, checkpoint writes excluded), so the protocol can take a median.
 """
 
 from __future__ import annotations
@@ -9,76 +31,219 @@ from __future__ import annotations
 import json
 import resource
 import shutil
+import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
+
+#: Name under which the full-image strategy is registered in svorf's ray-sampling registry
+#: (only inside this worker process, for the uORF-style configuration).
+FULL_IMAGE = "full_image"
+
+#: ModelConfig overrides that turn sVORF into the uORF-style configuration of the same code.
+UORF_MODEL_OVERRIDES: dict[str, Any] = {"composition": "density_weighted", "hypernetwork": False}
+
+
+def full_image_rays(target_rgb: Any, n: int, generator: Any) -> Any:
+    """Ray-sampling strategy: every pixel of one target view (uORF's full-image rendering).
+
+    Args:
+        target_rgb: [Vt, H, W, 3] the candidate target views of one scene.
+        n: rays to draw; must be ``H * W``.
+        generator: torch generator (picks the view uniformly).
+
+    Returns:
+        int64 [H * W] flat indices ``v * H * W + pixel`` into the stacked views.
+
+    Raises:
+        ValueError: ``n != H * W``.
+    """
+    import torch
+
+    vt, h, w = int(target_rgb.shape[0]), int(target_rgb.shape[1]), int(target_rgb.shape[2])
+    if n != h * w:
+        raise ValueError(f"full_image_rays: rays_per_scene must be H*W = {h * w}, got {n}")
+    v = int(torch.randint(0, vt, (1,), generator=generator))
+    return v * h * w + torch.arange(h * w, dtype=torch.long)
+
+
+def uorf_style(mcfg: Any, tcfg: Any) -> tuple[Any, Any]:
+    """(model, train) configs of the uORF-style configuration of the same code.
+
+    Full-image rendering (``rays_per_scene = image_size**2``, one whole target view per
+    scene: registers :data:`FULL_IMAGE` in ``svorf.data``'s registry, in this process),
+    density-weighted composition and one slot-conditioned MLP (no hypernetwork). Batch,
+    resolution, samples per ray, encoder and decoder are unchanged.
+    """
+    from svorf.data import RAY_SAMPLING, register_ray_sampling
+
+    if FULL_IMAGE not in RAY_SAMPLING:
+        register_ray_sampling(FULL_IMAGE, full_image_rays)
+    mcfg = mcfg.replace(**UORF_MODEL_OVERRIDES)
+    return mcfg, tcfg.replace(rays_per_scene=int(mcfg.image_size) ** 2, ray_sampling=FULL_IMAGE)
+
+
+def _rss_mb() -> float:
+    """Current resident set size (MiB) from /proc (0 where there is none)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
+class _FirstStepMemory:
+    """Memory in use when the first training step starts (a global forward pre-hook).
+
+    The first module forward of the process is the model's first training step: the
+    dataset, model and optimizer exist by then, the step's activations do not yet.
+    CPU: resident set size (MiB); CUDA: ``torch.cuda.memory_allocated`` (MiB).
+    """
+
+    def __init__(self, cuda: bool) -> None:
+        import torch
+
+        self.cuda = cuda
+        self.mb: float | None = None
+        self._handle = torch.nn.modules.module.register_module_forward_pre_hook(self._hook)
+
+    def _hook(self, module: Any, args: Any) -> None:
+        import torch
+
+        if self.mb is None:
+            self.mb = torch.cuda.memory_allocated() / 2**20 if self.cuda else _rss_mb()
+            self._handle.remove()
+
+
+def _step_times(log: Path, after_step: int) -> list[float]:
+    """Seconds of each logged step after ``after_step`` (``log_every=1``)."""
+    out = []
+    for line in log.read_text().splitlines():
+        row = json.loads(line)
+        if row["step"] > after_step and row.get("steps_per_s"):
+            out.append(1.0 / float(row["steps_per_s"]))
+    return out
+
+
+def _render(adapter: Any, model: Any, ds: Any, cuda: bool, repeats: int) -> dict[str, Any]:
+    """Novel-view (every view, one encode) and segmentation (input view) render times."""
+    import torch
+
+    def timed(fn: Any) -> float:
+        if cuda:
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        fn()
+        if cuda:
+            torch.cuda.synchronize()
+        return time.perf_counter() - t0
+
+    adapter.predict_scene(model, ds, 0)  # untimed (lazy init, caches)
+    scenes = [i % len(ds) for i in range(repeats)]
+    n_views = ds.n_views
+    all_views = [timed(lambda i=i: adapter.predict_scene(model, ds, i)) for i in scenes]
+    seg = [
+        timed(lambda i=i: adapter.predict_scene(model, ds, i, input_view_only=True)) for i in scenes
+    ]
+    all_med, seg_med = statistics.median(all_views), statistics.median(seg)
+    return {
+        "render_wall_s": sum(all_views) + sum(seg),
+        "render_s_per_view": all_med / n_views,
+        "render_views": n_views,
+        "render_repeats": len(scenes),
+        "nvs_images_per_s": n_views / all_med,
+        "seg_s_per_image": seg_med,
+        "seg_images_per_s": 1.0 / seg_med,
+    }
 
 
 def main(argv: list[str]) -> int:
+    a = json.loads(argv[0])
+    if a.get("max_memory_mb"):
+        lim = int(float(a["max_memory_mb"]) * 2**20)
+        resource.setrlimit(resource.RLIMIT_AS, (lim, lim))
+
     import torch
 
     from benchmark import adapter
 
-    a = json.loads(argv[0])
+    style = a.get("style", "svorf")
+    if style not in ("svorf", "uorf"):
+        raise ValueError(f"_speed_worker: style must be 'svorf' or 'uorf', got {style!r}")
     work = Path(a["work"])
     shutil.rmtree(work, ignore_errors=True)  # always a fresh run: timings, not results
     mcfg = adapter.model_config(a["scale"], a["train_preset"], a["variant"])
     warm = adapter.train_config(
         a["scale"], a["train_preset"], a["variant"], a["seed"], a["device"], steps=a["warmup"]
     )
-    changes = {"log_every": 1, "ckpt_every": 10**9}
+    changes: dict[str, Any] = {"log_every": 1, "ckpt_every": 10**9}
     if a["batch_scenes"]:
         changes["batch_scenes"] = int(a["batch_scenes"])
     warm = warm.replace(**changes)
+    if style == "uorf":
+        mcfg, warm = uorf_style(mcfg, warm)
     cuda = a["device"].startswith("cuda")
-    t0 = time.perf_counter()
-    adapter.train(a["train_dir"], work, mcfg, warm, progress=False)
-    warm_wall = time.perf_counter() - t0
-    if cuda:
-        torch.cuda.synchronize()
-        torch.cuda.reset_peak_memory_stats()
+    rss_before = _rss_mb()
+    first_step = _FirstStepMemory(cuda)
     timed = warm.replace(steps=a["warmup"] + a["steps"])
-    t0 = time.perf_counter()
-    summary = adapter.train(a["train_dir"], work, mcfg, timed, progress=False)
-    if cuda:
-        torch.cuda.synchronize()
-    timed_wall = time.perf_counter() - t0
+    try:
+        t0 = time.perf_counter()
+        adapter.train(a["train_dir"], work, mcfg, warm, progress=False)
+        warm_wall = time.perf_counter() - t0
+        if cuda:
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+        t0 = time.perf_counter()
+        summary = adapter.train(a["train_dir"], work, mcfg, timed, progress=False)
+        if cuda:
+            torch.cuda.synchronize()
+        timed_wall = time.perf_counter() - t0
+    except (MemoryError, RuntimeError) as e:  # RLIMIT_AS reached: torch raises RuntimeError
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        oom = isinstance(e, MemoryError) or "alloc" in msg.lower() or "memory" in msg.lower()
+        shutil.rmtree(work, ignore_errors=True)
+        if not oom:
+            raise
+        print(json.dumps({"error": "out_of_memory", "message": msg[:300], "style": style}))
+        return 0
     s_per_step = summary.get("s_per_step") or timed_wall / a["steps"]
-
-    model = adapter.load_model(work, device=a["device"])
-    ds = adapter.open_dataset(a["test_dir"], image_size=mcfg.image_size)
-    adapter.predict_scene(model, ds, 0)  # untimed (lazy init, caches)
-    if cuda:
-        torch.cuda.synchronize()
-    t0 = time.perf_counter()
-    pred = adapter.predict_scene(model, ds, 0)
-    if cuda:
-        torch.cuda.synchronize()
-    render_wall = time.perf_counter() - t0
-    n_views = pred.rgb.shape[0]
+    steps = _step_times(work / "log.jsonl", int(a["warmup"]))
     if cuda:
         peak_mb = torch.cuda.max_memory_allocated() / 2**20
         kind = "torch.cuda.max_memory_allocated during the timed steps"
     else:
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         kind = "peak RSS of the measuring process (CPU)"
-    out = {
+    out: dict[str, Any] = {
+        "style": style,
         "s_per_step": float(s_per_step),
+        "step_times_s": [round(t, 6) for t in steps],
+        "step_time_median_s": statistics.median(steps) if steps else float(s_per_step),
         "timed_steps": int(a["steps"]),
         "warmup_steps": int(a["warmup"]),
         "timed_wall_s": timed_wall,
         "warmup_wall_s": warm_wall,
-        "render_wall_s": render_wall,
-        "render_s_per_view": render_wall / n_views,
         "peak_memory_mb": float(peak_mb),
+        "rss_before_train_mb": rss_before,
+        "memory_at_first_step_mb": first_step.mb,
+        "train_memory_mb": None if first_step.mb is None else max(0.0, peak_mb - first_step.mb),
         "memory_kind": kind,
         "batch_scenes": int(timed.batch_scenes),
         "rays_per_scene": int(timed.rays_per_scene),
+        "ray_sampling": timed.ray_sampling,
         "params": summary.get("params"),
         "device": a["device"],
         "model_config": adapter.config_dict(mcfg),
         "train_config": adapter.config_dict(timed),
+        "render_wall_s": 0.0,
     }
+    if a.get("render", True):
+        model = adapter.load_model(work, device=a["device"])
+        ds = adapter.open_dataset(a["test_dir"], image_size=mcfg.image_size)
+        out.update(_render(adapter, model, ds, cuda, int(a.get("render_repeats", 1))))
     shutil.rmtree(work, ignore_errors=True)
     print(json.dumps(out))
     return 0

@@ -1,28 +1,57 @@
-"""``speed`` protocol: training steps/s, peak memory and render time per view.
+"""``speed`` protocol: training step time and memory (sVORF and a uORF-style configuration
+of the same code, side by side), generator overhead and scaling, inference images/s.
 
-Where this sits: compared with the paper's Table 8 (``tab:time``: memory and time
-of one CLEVR-567 epoch at batch size 1 on a V100). Each measurement runs in a
-fresh subprocess (:mod:`benchmark.protocols._speed_worker`) so that the peak
-memory belongs to that training alone:
+Where this sits: compared with the paper's Table 8 (``tab:time``: memory and time of one
+CLEVR-567 epoch at batch size 1 on a V100) and with the targets of issue 7. Every
+training measurement runs in a fresh subprocess (:mod:`benchmark.protocols._speed_worker`)
+so that its peak memory belongs to that training alone:
 
-- CPU: peak resident set size of the worker process (includes Python and torch,
-  ~0.3 GB); CUDA: ``torch.cuda.max_memory_allocated`` (tensors only).
-- steps/s: ``speed_warmup`` untimed steps, then ``speed_steps`` timed steps
-  (svorf's own per-step timer, checkpoint writes excluded).
-- render time per view: ``svorf.train.predict_scene`` on one test scene (every
-  view at the dataset's resolution, after one untimed call), divided by the views.
+- CPU: ``peak_memory_mb`` is the peak resident set size of the worker process (Python,
+  torch and the training split included, ~0.5 GB at cpu scale); ``train_memory_mb`` is
+  that peak minus the resident size at the first training step (dataset, model and
+  optimizer already built): what the training steps themselves add. CUDA:
+  ``torch.cuda.max_memory_allocated`` (tensors only) and that minus the memory allocated
+  at the first step.
+- step time: the median of the timed steps' own durations (svorf's per-step log, after
+  warm-up steps; checkpoint writes excluded). ``steps_per_s`` is its inverse.
 
-Rows: ``tab:time`` "sVORF" measured at batch size 1 (the paper's setting), with
-``epoch_time_s`` = 1000 scenes x step time (one epoch of CLEVR-567 at batch 1)
-and ``memory_gb``; table ``speed`` holds the same at the scale's own batch size.
+Tables (rows):
+
+1. ``tab:time``: "sVORF" measured at batch 1 (the paper's setting), ``epoch_time_s`` =
+   1000 scenes x mean step time, ``memory_gb``; beside the paper's rows.
+2. ``speed``: the same at the scale's own batch size.
+3. ``speed_vs_uorf``: sVORF (small-ray training: the scale's rays per scene and ray
+   sampling) against the uORF-style configuration of the same code (every pixel of one
+   target view per scene per step, density-weighted composition, slot-conditioned MLP
+   without hypernetwork), same resolution, batch, encoder, decoder and samples per ray.
+   The two run alternately (sVORF, uORF-style, sVORF, ...), ``compare_repeats`` times
+   each, every repeat a fresh subprocess, so machine load hits both alike; the ratio row
+   "sVORF vs uORF-style" has ``step_time_ratio`` (uORF-style median step / sVORF's),
+   ``memory_ratio`` (peak memory) and ``train_memory_ratio`` (memory added by training),
+   with the paper's ratios (Table 8: 522 s / 204 s = 2.56x, 23.6 GB / 4.6 GB = 5.13x)
+   and issue 7's targets (>= 3x, >= 5x) as plain fields, never as measured values.
+4. ``speed_generator``: seconds per view of ``generate`` (a fresh command per worker
+   count, :func:`benchmark.scaling.measure_generation`) and of a bare Cycles render of
+   the same views at the same settings (:func:`generators.bench_overhead.
+   bare_render_s_per_view`, 1 thread, render calls only); ``overhead_ratio`` =
+   generate s/view (1 worker x 1 thread) / bare Cycles s/view; ``scaling_speedup`` per
+   worker count. Needs Blender (``bpy``): otherwise, and with ``--data-source synthetic``,
+   one row of nulls with the reason.
+5. ``speed_inference``: images per second of novel-view rendering (every view of a test
+   scene from one encode; RGB, depth and slot masks come out of the same render) and of
+   segmentation rendering (encode + the input view only), medians over test scenes.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import importlib.util
 import json
 import os
+import statistics
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,32 +59,119 @@ from benchmark.paper_numbers import paper_rows
 from benchmark.report import RowStore, stable_hash
 from benchmark.runner import Context, ModelJob, row_id
 
-__all__ = ["run_speed"]
+__all__ = [
+    "PAPER_RATIOS",
+    "TARGET_RATIOS",
+    "SpeedOptions",
+    "compare_training",
+    "default_options",
+    "generator_rows",
+    "ratio_row",
+    "run_speed",
+]
 
 PAPER_EPOCH_SCENES = 1000  # CLEVR-567 training split
 
+#: The paper's Table 8 ratios, uORF (coarse stage) over sVORF: 522 s / 204 s per epoch and
+#: 23.6 GB / 4.6 GB of GPU memory, batch 1 on a V100.
+PAPER_RATIOS: dict[str, float] = {
+    "step_time_ratio": round(522.0 / 204.0, 3),
+    "memory_ratio": round(23.6 / 4.6, 3),
+}
+#: Issue 7's targets for the same ratios (sVORF at least this much faster / smaller).
+TARGET_RATIOS: dict[str, float] = {"step_time_ratio": 3.0, "memory_ratio": 5.0}
 
-def _measure(ctx: Context, job: ModelJob, batch_scenes: int | None, tag: str) -> dict[str, Any]:
-    train = ctx.dataset(job.train_preset, "train")
-    test = ctx.dataset(job.train_preset, "test")
-    work = (
-        ctx.out
-        / "speed-work"
-        / f"{tag}-{stable_hash([train.fingerprint, batch_scenes, ctx.device])}"
-    )
-    args = {
-        "scale": ctx.scale,
-        "train_preset": job.train_preset,
-        "variant": job.variant,
-        "seed": ctx.seeds["train"],
-        "device": ctx.device,
-        "batch_scenes": batch_scenes,
-        "warmup": ctx.settings.speed_warmup,
-        "steps": ctx.settings.speed_steps,
-        "train_dir": str(train.path),
-        "test_dir": str(test.path),
-        "work": str(work),
-    }
+SVORF_LABEL = "sVORF (small-ray training)"
+UORF_LABEL = "uORF-style (full image, density-weighted, slot-conditioned MLP)"
+RATIO_LABEL = "sVORF vs uORF-style"
+
+
+@dataclass(frozen=True)
+class SpeedOptions:
+    """What the ``speed`` protocol measures beyond the scale's ``speed_steps``/``speed_warmup``.
+
+    Attributes:
+        compare_batch: scenes per step of the sVORF / uORF-style comparison (1 = Table 8's
+            setting; None = the scale's training batch).
+        compare_steps: timed steps per comparison run (None = ``speed_steps``).
+        compare_warmup: untimed warm-up steps per comparison run (None = ``speed_warmup``).
+        compare_repeats: fresh-subprocess runs of each configuration, alternating.
+        memory_fraction: each worker's address-space limit as a fraction of the memory
+            available when the protocol starts (a configuration that does not fit fails
+            with a null row instead of pushing other processes out of memory).
+        render_repeats: test scenes timed for the inference rows (median).
+        generator: measure the generator; None = when ``data_source`` is ``generator``
+            and ``bpy`` is importable.
+        gen_scenes, gen_resolution, gen_samples: the generator measurement's split
+            (``clevr567`` train scenes, pixels, Cycles samples per pixel).
+        gen_workers: worker counts of the generator scaling rows (the first is the
+            reference of ``scaling_speedup`` and of ``overhead_ratio``).
+    """
+
+    compare_batch: int | None = 1
+    compare_steps: int | None = None
+    compare_warmup: int | None = None
+    compare_repeats: int = 3
+    memory_fraction: float = 0.6
+    render_repeats: int = 3
+    generator: bool | None = None
+    gen_scenes: int = 8
+    gen_resolution: int = 32
+    gen_samples: int = 4
+    gen_workers: tuple[int, ...] = (1, 2)
+
+    def __post_init__(self) -> None:
+        for name in ("compare_repeats", "render_repeats", "gen_scenes", "gen_resolution"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"SpeedOptions.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("compare_batch", "compare_steps", "compare_warmup", "gen_samples"):
+            v = getattr(self, name)
+            if v is not None and int(v) < (0 if name == "compare_warmup" else 1):
+                raise ValueError(f"SpeedOptions.{name} must be a positive count, got {v}")
+        if not 0.0 < self.memory_fraction <= 1.0:
+            raise ValueError(
+                f"SpeedOptions.memory_fraction must be in (0, 1], got {self.memory_fraction}"
+            )
+        if not self.gen_workers or min(self.gen_workers) < 1:
+            raise ValueError(f"SpeedOptions.gen_workers must be >= 1 each, got {self.gen_workers}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["gen_workers"] = list(self.gen_workers)
+        return d
+
+
+def default_options(scale: str) -> SpeedOptions:
+    """Per-scale defaults: smoke is quick (1 repeat, 2 generator scenes at 1 sample)."""
+    if scale == "smoke":
+        return SpeedOptions(compare_repeats=1, render_repeats=1, gen_scenes=2, gen_samples=1)
+    if scale == "paper":
+        return SpeedOptions(gen_scenes=16, gen_resolution=128, gen_samples=64)
+    return SpeedOptions()
+
+
+# ----------------------------------------------------------------------------- workers
+
+
+def _available_mb() -> float | None:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
+def _loadavg() -> list[float] | None:
+    """1/5/15-minute load averages (None where the OS has none): the machine's load."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def _worker(args: dict[str, Any]) -> dict[str, Any]:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
         [str(Path(__file__).resolve().parents[2]), env.get("PYTHONPATH", "")]
@@ -72,6 +188,55 @@ def _measure(ctx: Context, job: ModelJob, batch_scenes: int | None, tag: str) ->
             f"speed worker failed (rc {proc.returncode}): {proc.stderr.strip()[-1500:]}"
         )
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _args(
+    ctx: Context,
+    job: ModelJob,
+    batch_scenes: int | None,
+    tag: str,
+    *,
+    warmup: int,
+    steps: int,
+    **extra: Any,
+) -> dict[str, Any]:
+    train = ctx.dataset(job.train_preset, "train")
+    test = ctx.dataset(job.train_preset, "test")
+    work = (
+        ctx.out
+        / "speed-work"
+        / f"{tag}-{stable_hash([train.fingerprint, batch_scenes, ctx.device])}"
+    )
+    return {
+        "scale": ctx.scale,
+        "train_preset": job.train_preset,
+        "variant": job.variant,
+        "seed": ctx.seeds["train"],
+        "device": ctx.device,
+        "batch_scenes": batch_scenes,
+        "warmup": int(warmup),
+        "steps": int(steps),
+        "train_dir": str(train.path),
+        "test_dir": str(test.path),
+        "work": str(work),
+        **extra,
+    }
+
+
+def _measure(
+    ctx: Context, job: ModelJob, batch_scenes: int | None, tag: str, render_repeats: int = 1
+) -> dict[str, Any]:
+    return _worker(
+        _args(
+            ctx,
+            job,
+            batch_scenes,
+            tag,
+            warmup=ctx.settings.speed_warmup,
+            steps=ctx.settings.speed_steps,
+            render_repeats=render_repeats,
+        )
+    )
 
 
 def _row(table: str, model: str, m: dict[str, Any], epoch: bool) -> dict[str, Any]:
@@ -114,9 +279,356 @@ def _row(table: str, model: str, m: dict[str, Any], epoch: bool) -> dict[str, An
     }
 
 
-def run_speed(ctx: Context) -> Path:
-    """Measure training speed/memory at batch 1 (tab:time) and at the scale's batch size."""
+def _inference_rows(m: dict[str, Any], scale: str) -> list[dict[str, Any]]:
+    """``speed_inference``: novel-view and segmentation images/s from one measurement."""
+    rows = []
+    n = int(m.get("render_repeats", 1))
+    for model, ips, spv, what in (
+        (
+            f"novel-view rendering (sVORF, {scale} config)",
+            m.get("nvs_images_per_s"),
+            m.get("render_s_per_view"),
+            (
+                f"every view ({m.get('render_views')}) of a test scene from one encode of "
+                "its input view, RGB + depth + slot masks in one render; median over scenes"
+            ),
+        ),
+        (
+            f"segmentation rendering (sVORF, {scale} config)",
+            m.get("seg_images_per_s"),
+            m.get("seg_s_per_image"),
+            (
+                "encode + render of the input view only (its slot masks are the "
+                "segmentation; RGB and depth come with them); median over scenes"
+            ),
+        ),
+    ):
+        metrics = {"images_per_s": ips, "render_s_per_view": spv}
+        rows.append(
+            {
+                "id": row_id("speed_inference", model, "clevr567", "measured"),
+                "table": "speed_inference",
+                "model": model,
+                "dataset": "clevr567",
+                "variant": "full",
+                "source": "measured",
+                "metrics": metrics,
+                "null_reasons": {k: "not_measured" for k, v in metrics.items() if v is None},
+                "n_cases": n if ips is not None else 0,
+                "device": m["device"],
+                "note": f"{what}; {n} test scene(s) timed after one untimed render; the "
+                "model is the few-step speed run (render time does not depend on training "
+                "with the evaluation knobs off)",
+            }
+        )
+    return rows
+
+
+# ------------------------------------------------------------------- sVORF vs uORF-style
+
+
+def _median(xs: list[float]) -> float | None:
+    return float(statistics.median(xs)) if xs else None
+
+
+def _compare_row(
+    model: str, style: str, runs: list[dict[str, Any]], errors: list[str]
+) -> dict[str, Any]:
+    ok = [r for r in runs if "error" not in r]
+    steps = [t for r in ok for t in r["step_times_s"]]
+    step = _median(steps)
+    peak = _median([r["peak_memory_mb"] for r in ok])
+    train_mem = _median([r["train_memory_mb"] for r in ok if r.get("train_memory_mb") is not None])
+    metrics: dict[str, float | None] = {
+        "step_time_s": step,
+        "steps_per_s": 1.0 / step if step else None,
+        "peak_memory_mb": peak,
+        "train_memory_mb": train_mem,
+    }
+    why = "; ".join(errors) if errors else "not_measured"
+    first = ok[0] if ok else {}
+    return {
+        "id": row_id("speed_vs_uorf", model, "clevr567", "measured"),
+        "table": "speed_vs_uorf",
+        "model": model,
+        "dataset": "clevr567",
+        "variant": "full" if style == "svorf" else "uorf_style",
+        "source": "measured",
+        "metrics": metrics,
+        "null_reasons": {k: why for k, v in metrics.items() if v is None},
+        "n_cases": len(steps),
+        "repeats": len(ok),
+        "repeats_failed": len(runs) - len(ok),
+        "step_times_s": steps,
+        "peak_memory_mb_per_repeat": [r["peak_memory_mb"] for r in ok],
+        "train_memory_mb_per_repeat": [r.get("train_memory_mb") for r in ok],
+        "load_avg_per_repeat": [[r.get("load_avg_before"), r.get("load_avg_after")] for r in ok],
+        "batch_scenes": first.get("batch_scenes"),
+        "rays_per_scene": first.get("rays_per_scene"),
+        "ray_sampling": first.get("ray_sampling"),
+        "memory_kind": first.get("memory_kind"),
+        "params": first.get("params"),
+        "device": first.get("device"),
+        "model_config": first.get("model_config"),
+        "train_config": first.get("train_config"),
+        "note": (
+            f"median over {len(steps)} timed steps of {len(ok)} fresh subprocess(es) "
+            f"(alternating with the other configuration); memory = median of the repeats' peaks"
+        ),
+    }
+
+
+def ratio_row(svorf: dict[str, Any], uorf: dict[str, Any]) -> dict[str, Any]:
+    """The "sVORF vs uORF-style" row: uORF-style value / sVORF value (> 1 = sVORF better).
+
+    Args:
+        svorf, uorf: the two ``speed_vs_uorf`` rows (:func:`compare_training`).
+
+    Returns:
+        A measured row with ``step_time_ratio``, ``memory_ratio``, ``train_memory_ratio``
+        (null with the reason when either side is null), plus ``paper`` (Table 8's ratios),
+        ``targets`` (issue 7) and ``target_met`` (bool or None per ratio) as plain fields.
+    """
+    pairs = {
+        "step_time_ratio": "step_time_s",
+        "memory_ratio": "peak_memory_mb",
+        "train_memory_ratio": "train_memory_mb",
+    }
+    metrics: dict[str, float | None] = {}
+    reasons: dict[str, str] = {}
+    for name, src in pairs.items():
+        a, b = svorf["metrics"].get(src), uorf["metrics"].get(src)
+        if a and b is not None:
+            metrics[name] = round(float(b) / float(a), 4)
+        else:
+            metrics[name] = None
+            side = svorf if not a else uorf
+            reasons[name] = f"{src} of {side['model']!r} is null: " + (
+                side["null_reasons"].get(src) or "zero"
+            )
+    met = {
+        k: (None if metrics.get(k) is None else bool(metrics[k] >= t))
+        for k, t in TARGET_RATIOS.items()
+    }
+    n = min(int(svorf["n_cases"]), int(uorf["n_cases"]))
+    return {
+        "id": row_id("speed_vs_uorf", RATIO_LABEL, "clevr567", "measured"),
+        "table": "speed_vs_uorf",
+        "model": RATIO_LABEL,
+        "dataset": "clevr567",
+        "variant": "ratio",
+        "source": "measured",
+        "metrics": metrics,
+        "null_reasons": reasons,
+        "n_cases": n if any(v is not None for v in metrics.values()) else 0,
+        "paper": dict(PAPER_RATIOS),
+        "targets": dict(TARGET_RATIOS),
+        "target_met": met,
+        "note": (
+            "uORF-style / sVORF, same run (alternating fresh subprocesses); "
+            "step_time_ratio from median step times, memory_ratio from peak memory, "
+            "train_memory_ratio from the memory the training steps add; paper = Table 8 "
+            "(uORF coarse vs sVORF, V100 GPU memory), targets = issue 7; "
+            "memory_ratio is the issue's target measure, train_memory_ratio the closer "
+            "analogue of GPU memory on a CPU"
+        ),
+    }
+
+
+def compare_training(
+    ctx: Context, options: SpeedOptions, store: RowStore | None = None
+) -> list[dict[str, Any]]:
+    """sVORF against the uORF-style configuration of the same code, side by side.
+
+    Runs ``options.compare_repeats`` fresh worker subprocesses of each configuration,
+    alternating (sVORF first), at the same batch (``options.compare_batch``), resolution
+    and model size. Each run's raw result is kept in ``store`` (if given), so an
+    interrupted comparison resumes with the repeats it has.
+
+    Returns:
+        Three ``speed_vs_uorf`` rows: sVORF, uORF-style and the ratio row (:func:`ratio_row`).
+    """
+    job = ModelJob("full", "clevr567")
+    steps = options.compare_steps or ctx.settings.speed_steps
+    warmup = ctx.settings.speed_warmup if options.compare_warmup is None else options.compare_warmup
+    avail = _available_mb()
+    limit = None if avail is None else avail * options.memory_fraction
+    runs: dict[str, list[dict[str, Any]]] = {"svorf": [], "uorf": []}
+    errors: dict[str, list[str]] = {"svorf": [], "uorf": []}
+    for i in range(options.compare_repeats):
+        for style in ("svorf", "uorf"):
+            rid = f"speed_vs_uorf|raw|{style}|{i}|b{options.compare_batch}|s{steps}|w{warmup}"
+            raw = store.get(rid) if store is not None else None
+            if raw is None:
+                load_before = _loadavg()
+                m = _worker(
+                    _args(
+                        ctx,
+                        job,
+                        options.compare_batch,
+                        f"cmp-{style}",
+                        warmup=warmup,
+                        steps=steps,
+                        style=style,
+                        render=False,
+                        max_memory_mb=limit,
+                    )
+                )
+                m["load_avg_before"], m["load_avg_after"] = load_before, _loadavg()
+                raw = {"id": rid, "result": m}
+                if store is not None:
+                    store.put(raw)
+                if "error" not in m:
+                    ctx.timers["training"] += m["timed_wall_s"] + m["warmup_wall_s"]
+            m = raw["result"]
+            runs[style].append(m)
+            if "error" in m:
+                lim = f"{limit:.0f} MiB" if limit else "none"
+                errors[style].append(f"{m['error']} (address-space limit {lim}): {m['message']}")
+    svorf = _compare_row(SVORF_LABEL, "svorf", runs["svorf"], errors["svorf"])
+    uorf = _compare_row(UORF_LABEL, "uorf", runs["uorf"], errors["uorf"])
+    return [svorf, uorf, ratio_row(svorf, uorf)]
+
+
+# ------------------------------------------------------------------------- generator
+
+
+def _gen_row(model: str, metrics: dict[str, float | None], reason: str, **extra: Any):
+    return {
+        "id": row_id("speed_generator", model, "clevr567", "measured"),
+        "table": "speed_generator",
+        "model": model,
+        "dataset": "clevr567",
+        "source": "measured",
+        "metrics": metrics,
+        "null_reasons": {k: reason for k, v in metrics.items() if v is None},
+        **extra,
+    }
+
+
+def _bare_cycles(root: Path, threads: int) -> dict[str, Any]:
+    """``bare_render_s_per_view`` in a fresh interpreter (bpy must not load in this one)."""
+    code = (
+        "import json, sys; from generators.bench_overhead import bare_render_s_per_view as f; "
+        "print(json.dumps(f(sys.argv[1], None, int(sys.argv[2]))))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(root), str(threads)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"bare Cycles render failed: {proc.stderr.strip()[-800:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _generator_unavailable(ctx: Context, options: SpeedOptions) -> str | None:
+    if options.generator is False:
+        return "generator measurement switched off (SpeedOptions.generator=False)"
+    if options.generator is None and ctx.data_source != "generator":
+        return f"data source {ctx.data_source!r}: no Blender generator in this run"
+    if importlib.util.find_spec("bpy") is None:
+        return "bpy (Blender as a Python module) is not installed"
+    return None
+
+
+def generator_rows(ctx: Context, options: SpeedOptions) -> list[dict[str, Any]]:
+    """``speed_generator`` rows: generate s/view per worker count, bare Cycles, overhead.
+
+    Reuses :func:`benchmark.scaling.measure_generation` (one ``generate`` command per
+    worker count, 1 Cycles thread each) and :func:`generators.bench_overhead.
+    bare_render_s_per_view` on the 1st count's output (1 thread, render calls only).
+    Without Blender: one row of nulls saying why.
+    """
+    why = _generator_unavailable(ctx, options)
+    setting = (
+        f"clevr567 train, {options.gen_scenes} scenes x 4 views at {options.gen_resolution}x"
+        f"{options.gen_resolution}, {options.gen_samples} Cycles samples"
+    )
+    if why is not None:
+        return [
+            _gen_row(
+                "generate vs bare Cycles",
+                {"s_per_view": None, "overhead_ratio": None},
+                why,
+                n_cases=0,
+                note=setting,
+            )
+        ]
+    from benchmark.scaling import measure_generation
+
+    work = ctx.out / "speed-work" / "generator"
+    scal = measure_generation(
+        work,
+        list(options.gen_workers),
+        scenes=options.gen_scenes,
+        resolution=options.gen_resolution,
+        samples=options.gen_samples,
+    )
+    ctx.timers["data"] += sum(r["wall_s"] for r in scal)
+    first = options.gen_workers[0]
+    bare = _bare_cycles(work / f"gen_local_{first}", threads=1)
+    ctx.timers["data"] += bare["render_s_per_view"] * bare["views"]
+    views = options.gen_scenes * 4
+    rows = []
+    for r in scal:
+        over = r["s_per_view"] / bare["render_s_per_view"] if r["workers"] == first else None
+        metrics = {
+            "s_per_view": r["s_per_view"],
+            "scaling_speedup": r["speedup"],
+            "overhead_ratio": None if over is None else round(over, 3),
+        }
+        rows.append(
+            _gen_row(
+                f"generate ({r['workers']} worker(s) x 1 thread)",
+                metrics,
+                f"overhead_ratio is given for the {first}-worker command (bare Cycles uses 1 thread)",
+                n_cases=views,
+                workers=r["workers"],
+                wall_s=r["wall_s"],
+                same_bytes_as_first=r["same_bytes_as_first"],
+                load_before=r["load_before"],
+                load_after=r["load_after"],
+                note=(
+                    f"{setting}; wall of the whole `generate` command (process start-up, bpy "
+                    "import, scene building, writing every output) / views"
+                ),
+            )
+        )
+    rows.append(
+        _gen_row(
+            "bare Cycles render (1 thread)",
+            {"s_per_view": bare["render_s_per_view"]},
+            "",
+            n_cases=int(bare["views"]),
+            build_s_per_scene=bare["build_s_per_scene"],
+            note=(
+                f"{setting}; the same scene JSONs rendered by one BlenderSession, only the "
+                "bpy.ops.render.render calls timed (generators.bench_overhead)"
+            ),
+        )
+    )
+    return rows
+
+
+# ---------------------------------------------------------------------------- protocol
+
+
+def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
+    """Run the ``speed`` protocol and write its report (see the module docstring).
+
+    Args:
+        ctx: the protocol context (scale, device, data, output folder).
+        options: what to measure beyond ``speed_steps``/``speed_warmup``; None =
+            :func:`default_options` of the scale.
+
+    Returns:
+        The path of the written ``report.json``.
+    """
+    options = options or default_options(ctx.scale)
     report = ctx.base_report()
+    report["scale_settings"]["speed_options"] = options.to_dict()
     job = ModelJob("full", "clevr567")
     store = RowStore(
         ctx.report_dir / "rows",
@@ -126,23 +638,48 @@ def run_speed(ctx: Context) -> Path:
             "device": ctx.device,
             "source": ctx.data_source,
             "seed": ctx.seeds,
+            "speed_options": options.to_dict(),
         },
     )
     rows = paper_rows("tab:time")
+    inference: list[dict[str, Any]] = []
     for table, model, batch, epoch in (
         ("tab:time", "sVORF", 1, True),
         ("speed", f"sVORF ({ctx.scale} config)", None, False),
     ):
         rid = row_id(table, model, "clevr567", "measured")
         row = store.get(rid)
-        if row is None:
-            m = _measure(ctx, job, batch, "b1" if batch == 1 else "scale")
+        if row is None or (table == "speed" and "raw" not in row):
+            m = _measure(
+                ctx,
+                job,
+                batch,
+                "b1" if batch == 1 else "scale",
+                render_repeats=options.render_repeats if table == "speed" else 1,
+            )
             ctx.timers["training"] += m["timed_wall_s"] + m["warmup_wall_s"]
             ctx.timers["evaluation"] += m["render_wall_s"]
             row = _row(table, model, m, epoch)
+            if table == "speed":  # the inference rows are made from this measurement
+                row["raw"] = {k: v for k, v in m.items() if "config" not in k}
             store.put(row)
+        if table == "speed":
+            inference = _inference_rows(row["raw"], ctx.scale)
+            row = {k: v for k, v in row.items() if k != "raw"}
         rows.append(row)
+    cmp_rows = compare_training(ctx, options, store)
+    rows.extend(cmp_rows)
+    rows.extend(inference)
+    ids = _gen_ids(options)
+    gen = [r for r in (store.get(i) for i in ids) if r is not None]
+    if len(gen) != len(ids):
+        gen = generator_rows(ctx, options)
+        if all(r["n_cases"] for r in gen):
+            for r in gen:
+                store.put(r)
+    rows.extend(gen)
     report["rows"] = rows
+    ratio = cmp_rows[-1]
     report["notes"] = [
         (
             "tab:time in the paper: batch size 1 on an NVIDIA V100, full model at 128x128 "
@@ -150,11 +687,45 @@ def run_speed(ctx: Context) -> Path:
         ),
         (
             "CPU memory is the peak resident set size of the measuring process (Python + torch "
-            "included); CUDA memory is torch.cuda.max_memory_allocated."
+            "+ the training split included); train_memory_mb is that peak minus the resident "
+            "size at the first training step. CUDA memory is torch.cuda.max_memory_allocated."
         ),
+        _ratio_note(ratio),
         *ctx.settings.notes,
     ]
-    from benchmark.figures import speed_chart
+    from benchmark.figures import speed_chart, speed_compare_chart
 
-    report["figures"] = [speed_chart(ctx.report_dir / "speed.png", rows, ctx.scale)]
+    report["figures"] = [
+        speed_chart(ctx.report_dir / "speed.png", rows, ctx.scale),
+        speed_compare_chart(ctx.report_dir / "speed_vs_uorf.png", rows, ctx.scale),
+    ]
     return ctx.finish(report)
+
+
+def _gen_ids(options: SpeedOptions) -> list[str]:
+    ids = [
+        row_id("speed_generator", f"generate ({w} worker(s) x 1 thread)", "clevr567", "measured")
+        for w in options.gen_workers
+    ]
+    return ids + [
+        row_id("speed_generator", "bare Cycles render (1 thread)", "clevr567", "measured")
+    ]
+
+
+def _ratio_note(row: dict[str, Any]) -> str:
+    m, met = row["metrics"], row["target_met"]
+
+    def show(k: str) -> str:
+        v = m.get(k)
+        if v is None:
+            return f"{k} null ({row['null_reasons'].get(k)})"
+        paper = PAPER_RATIOS.get(k)
+        tail = f", paper {paper}x" if paper else ""
+        goal = TARGET_RATIOS.get(k)
+        if goal:
+            tail += f", target >= {goal}x {'met' if met.get(k) else 'NOT met'}"
+        return f"{k} {v:.2f}x{tail}"
+
+    return "sVORF vs uORF-style (same run, same batch and resolution): " + "; ".join(
+        show(k) for k in ("step_time_ratio", "memory_ratio", "train_memory_ratio")
+    )

@@ -1,0 +1,168 @@
+"""The ``speed`` protocol's parts (issue 7): the uORF-style configuration of the same code,
+the ratio row against the paper's and the issue's ratios, options, the generator rows
+without Blender, and the schema of the new metrics. Fast tier: no training, no Blender
+(the full protocol at smoke scale is ``tests/test_benchmark.py::
+test_speed_protocol_on_synthetic_data``, slow tier).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from benchmark import adapter
+from benchmark.protocols import _speed_worker as worker
+from benchmark.protocols import speed
+from benchmark.report import new_report
+from benchmark.runner import Context
+from benchmark.schema import METRIC_UNITS, check_report
+
+
+@pytest.fixture(autouse=True)
+def _restore_ray_sampling_registry():
+    """``uorf_style`` registers ``full_image`` (meant for the worker process): undo it here."""
+    from svorf.data import RAY_SAMPLING
+
+    before = dict(RAY_SAMPLING)
+    yield
+    RAY_SAMPLING.clear()
+    RAY_SAMPLING.update(before)
+
+
+def test_full_image_rays_cover_one_view_exactly():
+    rgb = torch.zeros(3, 4, 5, 3)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(5):
+        idx = worker.full_image_rays(rgb, 20, gen)
+        assert idx.dtype == torch.long and idx.shape == (20,)
+        view = int(idx[0]) // 20
+        assert 0 <= view < 3
+        assert torch.equal(idx, view * 20 + torch.arange(20))  # every pixel once, in order
+    with pytest.raises(ValueError, match="H\\*W = 20"):
+        worker.full_image_rays(rgb, 64, gen)
+
+
+def test_uorf_style_changes_only_what_the_issue_names():
+    mcfg = adapter.model_config("smoke", "clevr567")
+    tcfg = adapter.train_config("smoke", "clevr567", "full", 0, "cpu")
+    um, ut = worker.uorf_style(mcfg, tcfg)
+    assert um.composition == "density_weighted" and um.hypernetwork is False
+    changed = {k for k, v in um.to_dict().items() if mcfg.to_dict()[k] != v}
+    assert changed == {"composition", "hypernetwork"}
+    assert ut.rays_per_scene == mcfg.image_size**2 and ut.ray_sampling == worker.FULL_IMAGE
+    changed = {k for k, v in ut.to_dict().items() if tcfg.to_dict()[k] != v}
+    assert changed == {"rays_per_scene", "ray_sampling"}  # same batch, lr, steps, ...
+    worker.uorf_style(mcfg, tcfg)  # registering twice is harmless
+
+
+def test_uorf_style_trains_a_full_image_step(tmp_path):
+    """One step of each configuration through svorf's own training loop."""
+    data = adapter.write_synthetic_split(tmp_path / "train", n_scenes=2, resolution=16, seed=0)
+    mcfg = adapter.model_config("smoke", "clevr567", image_size=16)
+    tcfg = adapter.train_config("smoke", "clevr567", "full", 0, "cpu", steps=1)
+    tcfg = tcfg.replace(batch_scenes=1, log_every=1)
+    um, ut = worker.uorf_style(mcfg, tcfg)
+    out = adapter.train(data, tmp_path / "run", um, ut, progress=False)
+    assert out["steps"] == 1 and out["final_loss"] is not None
+    assert worker._step_times(tmp_path / "run" / "log.jsonl", 0)
+
+
+def _side(model: str, step, peak, train_mem, n=6):
+    metrics = {"step_time_s": step, "peak_memory_mb": peak, "train_memory_mb": train_mem}
+    return {
+        "model": model,
+        "metrics": metrics,
+        "null_reasons": {k: "out_of_memory" for k, v in metrics.items() if v is None},
+        "n_cases": n,
+    }
+
+
+def test_ratio_row_values_targets_and_nulls():
+    row = speed.ratio_row(_side("a", 0.1, 500.0, 100.0), _side("b", 0.4, 1000.0, 800.0))
+    m = row["metrics"]
+    assert m == {"step_time_ratio": 4.0, "memory_ratio": 2.0, "train_memory_ratio": 8.0}
+    assert row["target_met"] == {"step_time_ratio": True, "memory_ratio": False}
+    assert row["paper"] == {"step_time_ratio": 2.559, "memory_ratio": 5.13}
+    assert row["targets"] == {"step_time_ratio": 3.0, "memory_ratio": 5.0}
+    assert row["source"] == "measured" and row["null_reasons"] == {}
+    # the uORF-style side did not fit: ratios null with the side's reason, target unknown
+    row = speed.ratio_row(_side("a", 0.1, 500.0, 100.0), _side("b", None, None, None, n=0))
+    assert all(v is None for v in row["metrics"].values())
+    assert "out_of_memory" in row["null_reasons"]["memory_ratio"]
+    assert row["target_met"] == {"step_time_ratio": None, "memory_ratio": None}
+    assert row["n_cases"] == 0
+
+
+def test_compare_rows_take_medians_and_report_failed_repeats():
+    ok = {
+        "step_times_s": [0.3, 0.1, 0.2],
+        "peak_memory_mb": 400.0,
+        "train_memory_mb": 50.0,
+        "batch_scenes": 1,
+        "rays_per_scene": 64,
+    }
+    ok2 = {**ok, "step_times_s": [0.4, 0.5], "peak_memory_mb": 600.0, "train_memory_mb": 70.0}
+    row = speed._compare_row("x", "svorf", [ok, ok2], [])
+    assert row["metrics"]["step_time_s"] == 0.3 and row["n_cases"] == 5
+    assert row["metrics"]["peak_memory_mb"] == 500.0 and row["repeats"] == 2
+    oom = {"error": "out_of_memory", "message": "can't allocate"}
+    row = speed._compare_row("y", "uorf", [oom], ["out_of_memory (limit 10 MiB): x"])
+    assert row["n_cases"] == 0 and row["repeats_failed"] == 1
+    assert all(v is None for v in row["metrics"].values())
+    assert row["null_reasons"]["step_time_s"].startswith("out_of_memory")
+
+
+def test_speed_options_validate_and_defaults():
+    assert speed.default_options("smoke").compare_repeats == 1
+    assert speed.default_options("cpu").compare_batch == 1
+    with pytest.raises(ValueError, match="compare_repeats"):
+        speed.SpeedOptions(compare_repeats=0)
+    with pytest.raises(ValueError, match="memory_fraction"):
+        speed.SpeedOptions(memory_fraction=0.0)
+    with pytest.raises(ValueError, match="gen_workers"):
+        speed.SpeedOptions(gen_workers=())
+    assert speed.SpeedOptions().to_dict()["gen_workers"] == [1, 2]
+
+
+def test_generator_rows_null_with_reason_without_generator(tmp_path):
+    ctx = Context("speed", "smoke", tmp_path / "r", tmp_path / "d", data_source="synthetic")
+    rows = speed.generator_rows(ctx, speed.default_options("smoke"))
+    assert len(rows) == 1 and rows[0]["n_cases"] == 0
+    assert all(v is None for v in rows[0]["metrics"].values())
+    assert "synthetic" in rows[0]["null_reasons"]["overhead_ratio"]
+    import dataclasses
+
+    off = dataclasses.replace(speed.default_options("smoke"), generator=False)
+    assert "switched off" in speed.generator_rows(ctx, off)[0]["null_reasons"]["s_per_view"]
+
+
+def test_new_speed_rows_pass_the_schema():
+    for name in (
+        "train_memory_mb",
+        "step_time_ratio",
+        "memory_ratio",
+        "train_memory_ratio",
+        "images_per_s",
+        "s_per_view",
+        "overhead_ratio",
+        "scaling_speedup",
+    ):
+        assert name in METRIC_UNITS
+    a, b = _side("a", 0.1, 500.0, 100.0), _side("b", 0.4, 1000.0, None)
+    rows = []
+    for r in (a, b):
+        r = copy.deepcopy(r)
+        r.update(
+            id=f"speed_vs_uorf|{r['model']}|clevr567|measured",
+            table="speed_vs_uorf",
+            dataset="clevr567",
+            source="measured",
+        )
+        rows.append(r)
+    rows.append(speed.ratio_row(rows[0], rows[1]))
+    rep = new_report("speed", "smoke", "cpu")
+    rep["rows"] = rows
+    problems = [p for p in check_report(rep) if "rows" in p]
+    assert problems == []
