@@ -209,6 +209,7 @@ def compare(
     *,
     samples: int = RenderSettings.samples,
     seed: int = 0,
+    generate_samples: int | None = None,
 ) -> dict[str, Any]:
     """Time ``generate`` and the naive script on the same scenes; PSNR and exactness.
 
@@ -223,6 +224,8 @@ def compare(
             (default a temporary folder, deleted afterwards).
         psnr_scenes: the first this many scenes are compared with the reference.
         samples: samples of both timed sides (default the shipped setting).
+        generate_samples: samples of the ``generate`` side only (default ``samples``): the
+            equal-PSNR comparison, e.g. ``generate`` at 4 against the naive script at 8.
         seed: dataset seed.
 
     Returns:
@@ -242,6 +245,9 @@ def compare(
         raise ValueError(
             f"psnr_scenes (--psnr-scenes) must be in [1, n_scenes={n_scenes}], got {psnr_scenes}"
         )
+    gen_samples = samples if generate_samples is None else generate_samples
+    if gen_samples < 1:
+        raise ValueError(f"generate_samples (--generate-samples) must be >= 1, got {gen_samples}")
     threads = cpu_cores() if threads is None else threads
     if threads < 1:
         raise ValueError(f"threads (--threads) must be >= 1, got {threads}")
@@ -259,8 +265,9 @@ def compare(
     me = [sys.executable, "-m", "generators.bench_baseline", *common]
     try:
         load_before = _load()
-        gen_cmd = [sys.executable, "-m", "generators.cli", *common, "--split", cfg.split_name(),
-                   "--out", str(dirs["generate"]), "--no-progress"]  # fmt: skip
+        gen_cmd = [sys.executable, "-m", "generators.cli", *common[:-1], str(gen_samples),
+                   "--split", cfg.split_name(), "--out", str(dirs["generate"]),
+                   "--no-progress"]  # fmt: skip
         gen_wall = _run(gen_cmd + (["--workers", str(workers)] if workers else []))
         naive_wall = _run([*me, "--threads", str(threads), "--naive-only", str(dirs["naive"]),
                            "--stats", str(stats_path)])  # fmt: skip
@@ -283,7 +290,8 @@ def compare(
             "preset": cfg.preset, "split": cfg.split_name(), "n_scenes": n_scenes, "views": views,
             "resolution": resolution, "seed": seed, "psnr_scenes": psnr_scenes,
             "generate": {"command": " ".join(gen_cmd[1:]), "workers": cfg.n_workers(),
-                         "threads": cfg.n_threads(), "render": cfg.render_settings().to_json()},
+                         "threads": cfg.n_threads(),
+                         "render": replace(cfg, samples=gen_samples).render_settings().to_json()},
             "naive": {"threads": threads, "light_path": naive_stats["light_path"],
                       "rna_defaults": naive_stats["rna_defaults"],
                       "render": naive_stats["render"]},
@@ -367,6 +375,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--resolution", type=int, default=128, help="square image size")
     ap.add_argument("--samples", type=int, default=RenderSettings.samples,
                     help=f"samples of both timed sides (default {RenderSettings.samples})")  # fmt: skip
+    ap.add_argument("--generate-samples", type=int, default=None,
+                    help="samples of the generate side only (equal-PSNR comparison; "
+                         "default --samples)")  # fmt: skip
     ap.add_argument("--seed", type=int, default=0, help="dataset seed")
     ap.add_argument("--ref-samples", type=int, default=512, help="reference samples (no denoiser)")
     ap.add_argument("--psnr-scenes", type=int, default=2, help="first scenes compared for PSNR")
@@ -388,7 +399,8 @@ def main(argv: list[str] | None = None) -> int:
                                  samples=a.samples, progress=False)  # fmt: skip
             return _subprocess_role(a, cfg)
         r = compare(a.preset, a.n, a.resolution, a.ref_samples, a.threads, a.workers,
-                    a.out_root, a.psnr_scenes, samples=a.samples, seed=a.seed)  # fmt: skip
+                    a.out_root, a.psnr_scenes, samples=a.samples, seed=a.seed,
+                    generate_samples=a.generate_samples)  # fmt: skip
     except (ValueError, RuntimeError, ImportError) as e:
         print(f"bench_baseline: error: {str(e).splitlines()[0]}", file=sys.stderr)
         return 2

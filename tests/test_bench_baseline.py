@@ -20,7 +20,9 @@ from generators.spec import RenderSettings
 @pytest.mark.skipif(not bpy_available(), reason="bpy not installed")
 @pytest.mark.timeout(120)
 def test_compare_tiny_side_by_side(tmp_path):
-    r = bench_baseline.compare("clevr567", 2, 32, 16, None, None, tmp_path, 2, samples=2)
+    r = bench_baseline.compare(
+        "clevr567", 2, 32, 16, None, None, tmp_path, 2, samples=2, generate_samples=1
+    )
     gen, naive = tmp_path / "generate", tmp_path / "naive"
     names = sorted(p.relative_to(gen).as_posix() for p in gen.rglob("*") if p.is_file())
     assert {"manifest.json", "sc0000.json", "sc0001.json"} <= set(names)
@@ -38,6 +40,7 @@ def test_compare_tiny_side_by_side(tmp_path):
                 lp["transparent_max_bounces"], lp["caustics_reflective"])  # fmt: skip
     assert naive_lp != shipped
     assert r["settings"]["generate"]["render"]["max_bounces"] == d.max_bounces
+    assert r["settings"]["generate"]["render"]["samples"] == 1  # the equal-PSNR knob
     assert r["settings"]["naive"]["render"]["samples"] == 2 and lp["use_adaptive_sampling"]
     for side in ("generate", "naive"):
         assert math.isfinite(r[side]["psnr_db"]) and r[side]["psnr_db"] > 0
@@ -51,6 +54,7 @@ def test_compare_tiny_side_by_side(tmp_path):
     ("kwargs", "match"),
     [({"n_scenes": 0}, "n_scenes"), ({"psnr_scenes": 3, "n_scenes": 2}, "psnr_scenes"),
      ({"ref_samples": 0}, "ref_samples"), ({"threads": 0}, "threads"),
+     ({"generate_samples": 0}, "generate_samples"),
      ({"resolution": 8}, "resolution"), ({"preset_name": "nope"}, "preset")],
 )  # fmt: skip
 def test_bad_arguments_raise_before_anything_runs(tmp_path, kwargs, match):
