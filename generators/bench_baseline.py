@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 import scenefmt
+from generators.bench_quality import reference_settings
 from generators.pipeline import GenerateConfig, cpu_cores
 from generators.presets import Preset
 from generators.spec import RenderSettings, SceneSpec
@@ -159,12 +160,6 @@ def naive_render_split(
     return {"scenes": len(specs), "views": sum(s.n_views for s in specs), "render_s": render_s,
             "factory_resets": sess.factory_resets, "light_path": sess.light_path,
             "rna_defaults": sess.rna_defaults}  # fmt: skip
-
-
-def reference_settings(base: RenderSettings, ref_samples: int) -> RenderSettings:
-    """The high-sample reference of ``bench_quality``: no denoiser, more bounces."""
-    return replace(base, samples=ref_samples, denoise=False, max_bounces=8, diffuse_bounces=8,
-                   glossy_bounces=4)  # fmt: skip
 
 
 def _specs(cfg: GenerateConfig) -> list[SceneSpec]:

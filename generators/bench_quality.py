@@ -33,6 +33,12 @@ CANDIDATES: list[tuple[str, dict]] = [
 ]
 
 
+def reference_settings(base: RenderSettings, ref_samples: int) -> RenderSettings:
+    """The high-sample reference render: no denoiser, more bounces than any candidate."""
+    return replace(base, samples=ref_samples, denoise=False, max_bounces=8, diffuse_bounces=8,
+                   glossy_bounces=4)  # fmt: skip
+
+
 def psnr8(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR (dB) of two uint8 images, data range 255."""
     mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
@@ -67,8 +73,7 @@ def run(
     base = RenderSettings(resolution=resolution)
     sess = BlenderSession(threads=threads)
     specs = [make_scene(preset, "test", i, 0, base) for i in range(n_scenes)]
-    ref_settings = replace(base, samples=ref_samples, denoise=False, max_bounces=8, diffuse_bounces=8,
-                           glossy_bounces=4)  # fmt: skip
+    ref_settings = reference_settings(base, ref_samples)
     refs, ref_passes = [], []
     for s in specs:
         views = sess.render_scene(s.with_render(ref_settings))
