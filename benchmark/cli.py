@@ -167,12 +167,11 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from generators.ray_backend import RayMissingError
-
     from benchmark.generator_bridge import DatasetUnavailable
     from benchmark.protocols import NotImplementedProtocol
     from benchmark.ray_jobs import RayJobError
     from benchmark.schema import SchemaError
+    from generators.ray_backend import RayMissingError
 
     try:
         if args.cmd == "run":

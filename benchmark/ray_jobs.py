@@ -118,9 +118,8 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
         generators.ray_backend.RayMissingError: ray is not installed.
         RayJobError: a training or evaluation task failed (names the job).
     """
-    from generators.ray_backend import import_ray
-
     from benchmark.runner import _read_eval
+    from generators.ray_backend import import_ray
 
     ray = import_ray()
     started = not ray.is_initialized()

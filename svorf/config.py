@@ -422,7 +422,7 @@ def _check_choice(name: str, value: object, literal: object) -> None:
         raise ValueError(f"ModelConfig.{name} must be one of {choices}, got {value!r}")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _cpu_has_native_bf16() -> bool:
     flags: set[str] = set()
     try:

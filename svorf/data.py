@@ -31,9 +31,12 @@ as ``K' = diag(W'/W, H'/H, 1) @ K``. Because pixel edges lie on integer coordina
 scaling the continuous image plane maps pixel centres to pixel centres and needs no
 half-pixel shift. Only down-sampling is allowed.
 
-Memory: everything is held in memory (uint8 images and ids; float32 rays and depth),
-about ``V * H * W * 25`` bytes per scene: 0.4 MB for 4 views at 64x64, 1.6 MB at
-128x128.
+Memory: the images are held in memory as uint8 (3 bytes per pixel); the ground truth
+(uint8 ids, float32 depth: 5 bytes per pixel) only when loaded with ``truth=True``, which
+training does not do. Rays are not cached: a training batch computes its R rays per scene
+from the cameras (:meth:`MultiViewDataset.rays`), and ``dataset[i]`` computes the scene's
+per-pixel rays on access. A 4-view 64x64 scene takes 49 KB for training, 131 KB with
+truth (a per-pixel ray cache added 262 KB more).
 
 Glossary: B scenes, V views, H x W pixels, R rays per scene, K slots.
 """
@@ -77,6 +80,7 @@ __all__ = [
     "dataset_fingerprint",
     "object_heavy_rays",
     "pixel_rays",
+    "rays_at",
     "register_ray_sampling",
     "resize_intrinsics",
     "salient_pixels",
@@ -116,12 +120,51 @@ class DatasetError(ValueError):
 # --------------------------------------------------------------------------- rays
 
 
+def rays_at(K: Tensor, cam_to_world: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """Rays through pixel centres ``(u, v)`` (pixel columns / rows, integers) of views.
+
+    Element-wise float64 maths (no matrix products whose summation order depends on the
+    batch shape), so a ray is bit-identical whether computed for one pixel or the whole
+    image; returned as float32. :func:`pixel_rays` is this on the full pixel grid.
+
+    Args:
+        K: [..., 3, 3] intrinsics in pixels (pixel centres at ``u + 0.5``).
+        cam_to_world: [..., 4, 4], OpenCV axes, the same leading shape as ``K``.
+        u, v: integer pixel coordinates, broadcastable against the leading shape of ``K``
+            (e.g. ``K`` [V, 1, 1, 3, 3] with ``u``, ``v`` [H, W]).
+
+    Returns:
+        ``(rays_d [..., 3] unit world directions, z_scale [...] camera-z of the unit
+        direction)``, with the broadcast shape of ``u``, ``v`` and ``K``'s leading dims.
+    """
+    kinv = torch.linalg.inv(K.double())
+    rot = cam_to_world.double()[..., :3, :3]
+    uc, vc = u.double() + 0.5, v.double() + 0.5
+    # d_cam = K^-1 [u, v, 1]; K^-1 is upper triangular for every K a camera writes, but
+    # the full product costs nothing and keeps skewed or odd intrinsics right.
+    d_cam = torch.stack(
+        [kinv[..., i, 0] * uc + kinv[..., i, 1] * vc + kinv[..., i, 2] for i in range(3)], dim=-1
+    )
+    d_cam = d_cam / d_cam.norm(dim=-1, keepdim=True)
+    d = torch.stack(
+        [
+            rot[..., i, 0] * d_cam[..., 0]
+            + rot[..., i, 1] * d_cam[..., 1]
+            + rot[..., i, 2] * d_cam[..., 2]
+            for i in range(3)
+        ],
+        dim=-1,
+    )
+    d = d / d.norm(dim=-1, keepdim=True)  # exact rotations keep it unit
+    return d.float(), d_cam[..., 2].float()
+
+
 def pixel_rays(
     K: Tensor, cam_to_world: Tensor, height: int, width: int
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Rays through every pixel centre of a batch of views.
 
-    Computed in float64 and returned as float32.
+    Computed in float64 and returned as float32 (:func:`rays_at` on the full grid).
 
     Args:
         K: [V, 3, 3] intrinsics in pixels (pixel centres at ``u + 0.5``).
@@ -138,18 +181,9 @@ def pixel_rays(
         raise ValueError(
             f"cam_to_world must be [{K.shape[0]}, 4, 4], got {tuple(cam_to_world.shape)}"
         )
-    K64, c2w = K.double(), cam_to_world.double()
-    v, u = torch.meshgrid(
-        torch.arange(height, dtype=torch.float64) + 0.5,
-        torch.arange(width, dtype=torch.float64) + 0.5,
-        indexing="ij",
-    )
-    pix = torch.stack([u, v, torch.ones_like(u)], dim=-1)  # [H, W, 3]
-    d_cam = torch.einsum("vij,hwj->vhwi", torch.linalg.inv(K64), pix)
-    d_cam = d_cam / d_cam.norm(dim=-1, keepdim=True)
-    rays_d = torch.einsum("vij,vhwj->vhwi", c2w[:, :3, :3], d_cam)
-    rays_d = rays_d / rays_d.norm(dim=-1, keepdim=True)  # exact rotations keep it unit
-    return c2w[:, :3, 3].float(), rays_d.float(), d_cam[..., 2].float()
+    v, u = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    rays_d, z_scale = rays_at(K[:, None, None], cam_to_world[:, None, None], u, v)
+    return cam_to_world[:, :3, 3].float(), rays_d, z_scale
 
 
 def resize_intrinsics(K: Tensor, src_hw: tuple[int, int], dst_hw: tuple[int, int]) -> Tensor:
@@ -182,8 +216,10 @@ class SceneViews:
         images: [V, 3, H, W] float32 in [0, 1] (sRGB values as stored).
         K: [V, 3, 3] intrinsics at this resolution.
         cam_to_world: [V, 4, 4], OpenCV axes.
-        instances: [V, H, W] int64, 0 = background.
-        depth_z: [V, H, W] planar depth, world units, inf/nan = none.
+        instances: [V, H, W] int64, 0 = background; None for a dataset loaded with
+            ``truth=False`` (training data: no ground truth in memory).
+        depth_z: [V, H, W] planar depth, world units, inf/nan = none; None with
+            ``truth=False``.
         rays_o: [V, H, W, 3] camera centres (an expanded view, no copy).
         rays_d: [V, H, W, 3] unit world directions through pixel centres.
         z_scale: [V, H, W] camera-z of ``rays_d``: ``depth_z = t * z_scale``.
@@ -193,8 +229,8 @@ class SceneViews:
     images: Tensor
     K: Tensor
     cam_to_world: Tensor
-    instances: Tensor
-    depth_z: Tensor
+    instances: Tensor | None
+    depth_z: Tensor | None
     rays_o: Tensor
     rays_d: Tensor
     z_scale: Tensor
@@ -231,7 +267,7 @@ def _as_hw(size: int | Sequence[int] | None) -> tuple[int, int] | None:
 
 
 class MultiViewDataset(torch.utils.data.Dataset):
-    """A generated split folder, in memory, with cached per-pixel rays.
+    """A generated split folder, in memory; rays are computed from the cameras on access.
 
     Args:
         root: the split folder (e.g. ``data/clevr567/train``).
@@ -259,6 +295,10 @@ class MultiViewDataset(torch.utils.data.Dataset):
             pixel row and positive depth straight through ``cam2world``, i.e. x right,
             y down, z forward; ``"opengl"`` (x right, y up, z backward, Blender's
             ``matrix_world``) converts with ``@ diag(1, -1, -1, 1)``.
+        truth: also load the ground truth (instance ids and depth). Training passes
+            ``False``: the ids and depth files are not read at all (no depth EXR decoding,
+            less memory), so nothing of the ground truth can reach an unsupervised
+            training run; ``SceneViews.instances`` / ``depth_z`` are then None.
 
     Raises:
         DatasetError: a one-line message naming the missing/bad file and the fix.
@@ -279,6 +319,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
         uorf_fov_deg: float | tuple[float, float] = UORF_FOV_DEG,
         uorf_axes: str = "opencv",
         scenes: Sequence[int] | None = None,
+        truth: bool = True,
     ) -> None:
         self.root = Path(root)
         if not self.root.is_dir():
@@ -288,6 +329,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
         if uorf_axes not in ("opencv", "opengl"):
             raise ValueError(f"uorf_axes must be 'opencv' or 'opengl', got {uorf_axes!r}")
         self.uorf_layout = uorf_layout
+        self.truth = bool(truth)
         self.manifest: dict = {}
         self._only = None if scenes is None else {int(x) for x in scenes}
         if uorf_layout:
@@ -310,17 +352,16 @@ class MultiViewDataset(torch.utils.data.Dataset):
         self.source_hw: tuple[int, int] = src_hw
         self.n_views: int = rgb.shape[1]
         self._rgb = rgb  # uint8 [N, V, H, W, 3]
-        self._ids = ids  # uint8 [N, V, H, W]
-        self._depth = depth  # float32 [N, V, H, W]
-        self._K = K.float()  # [N, V, 3, 3]
-        self._c2w = c2w.float()  # [N, V, 4, 4]
-        n = rgb.shape[0]
-        h, w = dst_hw
-        # Rays once per view (float64 maths, float32 storage).
-        rays = [pixel_rays(K[i], c2w[i], h, w) for i in range(n)]
-        self._rays_o = torch.stack([r[0] for r in rays])  # [N, V, 3]
-        self._rays_d = torch.stack([r[1] for r in rays])  # [N, V, H, W, 3]
-        self._z_scale = torch.stack([r[2] for r in rays])  # [N, V, H, W]
+        self._ids = ids  # uint8 [N, V, H, W], None without truth
+        self._depth = depth  # float32 [N, V, H, W], None without truth
+        # Cameras in float64 (rays are computed from these, exactly as before they were
+        # cached) and float32 (what the model receives). No per-pixel ray cache: it took
+        # 16 of every 25 bytes per pixel, and a batch needs only R rays per scene.
+        self._K64 = K.double()  # [N, V, 3, 3]
+        self._c2w64 = c2w.double()  # [N, V, 4, 4]
+        self._K = K.float()
+        self._c2w = c2w.float()
+        self._rays_o = self._c2w64[:, :, :3, 3].float()  # [N, V, 3]
         self._fingerprint: str | None = None
 
     # ---------------------------------------------------------------- loading
@@ -381,8 +422,13 @@ class MultiViewDataset(torch.utils.data.Dataset):
         scenes = self._select(scenes, max_scenes)
         rgb, ids, depth, Ks, c2ws = [], [], [], [], []
         for s in scenes:
+            # Without truth, the ground-truth files (ids, depth, uORF mask) need not exist.
+            gt = set() if self.truth else {
+                f(s, v) for v in range(n_views)
+                for f in (layout.instances, layout.depth, layout.mask)
+            }  # fmt: skip
             for p in layout.scene_files(s):
-                if not p.is_file():
+                if p not in gt and not p.is_file():
                     raise self._missing(p)
             jpath = layout.scene_json(s)
             meta = self._read(read_json, jpath)
@@ -418,32 +464,38 @@ class MultiViewDataset(torch.utils.data.Dataset):
                         f"layout name {layout.rgb(s, view).name!r}"
                     )
                 img = self._read(read_rgb, layout.rgb(s, view))
-                inst = self._read(read_instances, layout.instances(s, view))
-                dz = self._read(read_depth_exr, layout.depth(s, view))
-                if inst.shape != img.shape[:2] or dz.shape != img.shape[:2]:
-                    raise DatasetError(
-                        f"{layout.rgb(s, view)}: image {img.shape[:2]}, instances "
-                        f"{inst.shape} and depth {dz.shape} sizes differ "
-                        f"(run `generate verify {self.root}`)"
-                    )
                 s_rgb.append(img)
-                s_ids.append(inst)
-                s_depth.append(dz)
+                if self.truth:
+                    inst = self._read(read_instances, layout.instances(s, view))
+                    dz = self._read(read_depth_exr, layout.depth(s, view))
+                    if inst.shape != img.shape[:2] or dz.shape != img.shape[:2]:
+                        raise DatasetError(
+                            f"{layout.rgb(s, view)}: image {img.shape[:2]}, instances "
+                            f"{inst.shape} and depth {dz.shape} sizes differ "
+                            f"(run `generate verify {self.root}`)"
+                        )
+                    s_ids.append(inst)
+                    s_depth.append(dz)
                 s_K.append(Kv)
                 s_c2w.append(Tv)
             rgb.append(np.stack(s_rgb))
-            ids.append(np.stack(s_ids))
-            depth.append(np.stack(s_depth))
+            if self.truth:
+                ids.append(np.stack(s_ids))
+                depth.append(np.stack(s_depth))
             Ks.append(np.stack(s_K))
             c2ws.append(np.stack(s_c2w))
+        return self._assemble(scenes, rgb, ids, depth, Ks, c2ws)
+
+    def _assemble(self, scenes, rgb, ids, depth, Ks, c2ws):
+        """The loaders' per-scene lists as stacked tensors (ids/depth None without truth)."""
         shapes = {a.shape for a in rgb}
         if len(shapes) != 1:
             raise DatasetError(f"{self.root}: scenes have different image sizes {sorted(shapes)}")
         return (
             scenes,
             torch.from_numpy(np.stack(rgb)),
-            torch.from_numpy(np.stack(ids)),
-            torch.from_numpy(np.stack(depth).astype(np.float32)),
+            torch.from_numpy(np.stack(ids)) if self.truth else None,
+            torch.from_numpy(np.stack(depth).astype(np.float32)) if self.truth else None,
             torch.from_numpy(np.stack(Ks)),
             torch.from_numpy(np.stack(c2ws)),
         )
@@ -484,6 +536,8 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 if T.shape != (4, 4):
                     raise DatasetError(f"{rt}: expected a 4x4 matrix, got shape {T.shape}")
                 s_c2w.append(T @ _GL_TO_CV if axes == "opengl" else T)
+                if not self.truth:
+                    continue
                 dpath = p.with_name(p.stem + "_depth.npy")
                 if dpath.is_file():  # assumed planar z (what our writer stores there)
                     dz = self._read(np.load, dpath)
@@ -498,21 +552,12 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 else:
                     s_levels.append(None)
             rgb.append(np.stack(s_rgb))
-            ids.append(_uorf_ids(s_levels, h, w))
-            depth.append(np.stack(s_depth))
+            if self.truth:
+                ids.append(_uorf_ids(s_levels, h, w))
+                depth.append(np.stack(s_depth))
             Ks.append(np.stack([Kv] * len(files)))
             c2ws.append(np.stack(s_c2w))
-        shapes = {a.shape for a in rgb}
-        if len(shapes) != 1:
-            raise DatasetError(f"{self.root}: scenes have different image sizes {sorted(shapes)}")
-        return (
-            scenes,
-            torch.from_numpy(np.stack(rgb)),
-            torch.from_numpy(np.stack(ids)),
-            torch.from_numpy(np.stack(depth)),
-            torch.from_numpy(np.stack(Ks)),
-            torch.from_numpy(np.stack(c2ws)),
-        )
+        return self._assemble(scenes, rgb, ids, depth, Ks, c2ws)
 
     @staticmethod
     def _resize(rgb: Tensor, ids: Tensor, depth: Tensor, hw: tuple[int, int]):
@@ -520,6 +565,8 @@ class MultiViewDataset(torch.utils.data.Dataset):
         x = rgb.reshape(n * v, h, w, 3).permute(0, 3, 1, 2).float()
         x = F.interpolate(x, size=hw, mode="area")
         rgb = x.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).reshape(n, v, *hw, 3)
+        if ids is None:  # loaded without truth
+            return rgb, None, None
         iy, ix = _nearest_index(h, hw[0]), _nearest_index(w, hw[1])
         ids = ids[:, :, iy][:, :, :, ix].contiguous()
         depth = depth[:, :, iy][:, :, :, ix].contiguous()
@@ -534,17 +581,26 @@ class MultiViewDataset(torch.utils.data.Dataset):
         if not -len(self) <= i < len(self):
             raise IndexError(f"scene position {i} out of range for {len(self)} scenes")
         v, (h, w) = self.n_views, self.image_hw
+        _, rays_d, z_scale = pixel_rays(self._K64[i], self._c2w64[i], h, w)
         return SceneViews(
             scene=self.scene_ids[i],
             images=self.images(i),
             K=self._K[i],
             cam_to_world=self._c2w[i],
-            instances=self._ids[i].long(),
-            depth_z=self._depth[i],
+            instances=None if self._ids is None else self._ids[i].long(),
+            depth_z=None if self._depth is None else self._depth[i],
             rays_o=self._rays_o[i][:, None, None, :].expand(v, h, w, 3),
-            rays_d=self._rays_d[i],
-            z_scale=self._z_scale[i],
+            rays_d=rays_d,
+            z_scale=z_scale,
         )
+
+    def rays(self, i: int, views: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor]:
+        """``(rays_o [R, 3], rays_d [R, 3])`` of scene position ``i`` through flat pixel
+        indices ``pixels`` [R] (``row * W + column``) of ``views`` [R]: the same values as
+        ``self[i].rays_d[views, row, column]``, computed for these pixels only."""
+        w = self.image_hw[1]
+        rays_d, _ = rays_at(self._K64[i][views], self._c2w64[i][views], pixels % w, pixels // w)
+        return self._rays_o[i][views], rays_d
 
     def images(self, i: int, views: Tensor | Sequence[int] | None = None) -> Tensor:
         """[V, 3, H, W] float32 in [0, 1] of scene position ``i`` (optionally some views)."""
@@ -925,8 +981,9 @@ class RaySampler:
             vsel = views[flat // (h * w)]
             pix = flat % (h * w)
             out["images"].append(ds.images(s, [iv])[0])
-            out["rays_o"].append(ds._rays_o[s][vsel])
-            out["rays_d"].append(ds._rays_d[s].reshape(v_all, h * w, 3)[vsel, pix])
+            rays_o, rays_d = ds.rays(s, vsel, pix)
+            out["rays_o"].append(rays_o)
+            out["rays_d"].append(rays_d)
             out["target_rgb"].append(ds._rgb[s].reshape(v_all, h * w, 3)[vsel, pix].float() / 255.0)
             out["target_view"].append(vsel)
             out["target_pixel"].append(pix)

@@ -612,7 +612,10 @@ def train(
         b = distributed.local_batch(train_cfg.batch_scenes, dctx.world_size)
         lo, hi = dctx.rank * b, (dctx.rank + 1) * b
         device = distributed.local_device(dctx, device)
-    dataset = MultiViewDataset(data_dir, image_size=model_cfg.image_size, max_scenes=max_scenes)
+    # truth=False: the ids and depth files are not even read (unsupervised training).
+    dataset = MultiViewDataset(
+        data_dir, image_size=model_cfg.image_size, max_scenes=max_scenes, truth=False
+    )
     eval_ds = None
     if main and eval_data is not None and train_cfg.eval_every:
         eval_ds = MultiViewDataset(

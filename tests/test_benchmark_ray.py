@@ -17,7 +17,9 @@ METRICS = ("nv_ari", "fg_ari", "ari", "psnr")
 
 def _rows() -> list[MeasuredRow]:
     return [
-        MeasuredRow("tab:ablation", "sVORF (ours)", "clevr567", ModelJob("full", "clevr567"), METRICS),
+        MeasuredRow(
+            "tab:ablation", "sVORF (ours)", "clevr567", ModelJob("full", "clevr567"), METRICS
+        ),
         MeasuredRow(
             "tab:ablation", "sVORF (w/o SA)", "clevr567", ModelJob("wo_sa", "clevr567"), METRICS
         ),

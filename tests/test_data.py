@@ -16,6 +16,8 @@ from svorf.data import (
     MultiViewDataset,
     RaySampler,
     dataset_fingerprint,
+    pixel_rays,
+    rays_at,
     register_ray_sampling,
 )
 from svorf.synthetic import write_synthetic_split
@@ -129,11 +131,63 @@ def test_sampler_draws_only_target_views(ds):
             vv, pix = b.target_view[i], b.target_pixel[i]
             yy, xx = pix // 32, pix % 32
             torch.testing.assert_close(b.target_rgb[i], sv.images[vv, :, yy, xx])
-            torch.testing.assert_close(b.rays_d[i], sv.rays_d[vv, yy, xx])
-            torch.testing.assert_close(b.rays_o[i], sv.rays_o[vv, yy, xx])
+            # Computed for the batch's pixels only, bit-identical to the per-image rays.
+            assert torch.equal(b.rays_d[i], sv.rays_d[vv, yy, xx])
+            assert torch.equal(b.rays_o[i], sv.rays_o[vv, yy, xx])
     same = RaySampler(ds, rays_per_scene=32, nvs=False)
     b = same.sample([0, 1], g)
     assert bool((b.target_view == b.input_view[:, None]).all())
+
+
+def test_pixel_rays_equal_the_matrix_form():
+    """The element-wise float64 rays equal inv(K) @ [u+.5, v+.5, 1] rotated to the world
+    (the matrix form), for a skewed K and a rotation with every entry non-zero."""
+    K = torch.tensor([[[40.0, 0.7, 15.5], [0.0, 38.0, 17.25], [0.0, 0.0, 1.0]]])
+    a, b, c = 0.3, -0.8, 1.1
+    rz = torch.tensor([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+    rx = torch.tensor([[1.0, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    ry = torch.tensor([[np.cos(c), 0, np.sin(c)], [0, 1.0, 0], [-np.sin(c), 0, np.cos(c)]])
+    c2w = torch.eye(4, dtype=torch.float64)[None].clone()
+    c2w[0, :3, :3], c2w[0, :3, 3] = rz @ rx @ ry, torch.tensor([1.0, -2.0, 7.0])
+    o, d, z = pixel_rays(K, c2w, 6, 5)
+    v, u = torch.meshgrid(torch.arange(6.0), torch.arange(5.0), indexing="ij")
+    pix = torch.stack([u + 0.5, v + 0.5, torch.ones_like(u)], -1).double()
+    d_cam = torch.nn.functional.normalize(pix @ torch.linalg.inv(K[0].double()).T, dim=-1)
+    want = d_cam @ c2w[0, :3, :3].T
+    torch.testing.assert_close(d[0].double(), want, atol=1e-7, rtol=0)
+    torch.testing.assert_close(z[0].double(), d_cam[..., 2], atol=1e-7, rtol=0)
+    assert torch.equal(o[0], c2w[0, :3, 3].float())
+    # One pixel alone gives the same bits as the whole grid.
+    d1, z1 = rays_at(K[0], c2w[0], torch.tensor(3), torch.tensor(4))
+    assert torch.equal(d1, d[0, 4, 3]) and torch.equal(z1, z[0, 4, 3])
+
+
+def test_training_data_without_truth_reads_no_ids_or_depth(split, ds, tmp_path):
+    """truth=False (what training loads): the ids and depth files are never read, so a
+    split without them loads, and the images, cameras, rays and batches are unchanged."""
+    bare = tmp_path / "bare"
+    shutil.copytree(split, bare)
+    lay = SplitLayout(bare)
+    for s in range(2):
+        for v in range(4):
+            lay.instances(s, v).unlink()
+            lay.depth(s, v).unlink()
+            lay.mask(s, v).unlink()
+    with pytest.raises(DatasetError, match="missing"):
+        MultiViewDataset(bare)
+    lean = MultiViewDataset(bare, truth=False)
+    assert lean._ids is None and lean._depth is None
+    sv, full = lean[1], ds[1]
+    assert sv.instances is None and sv.depth_z is None
+    for k in ("images", "K", "cam_to_world", "rays_o", "rays_d", "z_scale"):
+        assert torch.equal(getattr(sv, k), getattr(full, k)), k
+    small = MultiViewDataset(bare, image_size=16, truth=False)
+    assert torch.equal(small[0].images, MultiViewDataset(split, image_size=16)[0].images)
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    b1 = RaySampler(lean, 16, ray_sampling="object_heavy").sample([0, 1], g1)
+    b2 = RaySampler(ds, 16, ray_sampling="object_heavy").sample([0, 1], g2)
+    for k in b1.__dataclass_fields__:
+        assert torch.equal(getattr(b1, k), getattr(b2, k)), k
 
 
 def test_sampler_is_deterministic_with_the_generator(ds):

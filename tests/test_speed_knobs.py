@@ -403,7 +403,7 @@ def test_all_knobs_extreme_inputs_are_finite():
 
 @pytest.mark.parametrize("native", [False, True])
 def test_bf16_auto_follows_the_hardware(monkeypatch, native):
-    """"auto" = bf16 only where the CPU has it (torch emulates bf16 on AVX2: 3-5x slower);
+    """ "auto" = bf16 only where the CPU has it (torch emulates bf16 on AVX2: 3-5x slower);
     True / False force it either way."""
     import svorf.config as config_mod
 
@@ -424,7 +424,8 @@ def test_bf16_native_reads_the_cpu_flags():
 
     config_mod._cpu_has_native_bf16.cache_clear()
     try:
-        flags = open("/proc/cpuinfo").read()
+        with open("/proc/cpuinfo") as f:
+            flags = f.read()
     except OSError:
         flags = None
     got = config_mod._cpu_has_native_bf16()
@@ -513,7 +514,8 @@ def test_speedbench_report_table_and_json(tmp_path):
     out2 = tmp_path / "recipe.json"
     small = ["--scale", "smoke", "--scenes", "1", "--rays", "4", "--repeats", "1"]
     rc = speedbench.main(
-        small + ["--warmup", "0", "--threads", "1", "--no-rss", "--recipe", "--only", "keep_mass=0.99"]
+        small
+        + ["--warmup", "0", "--threads", "1", "--no-rss", "--recipe", "--only", "keep_mass=0.99"]
         + ["--json", str(out2)]
     )
     assert rc == 0
