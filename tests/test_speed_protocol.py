@@ -116,7 +116,11 @@ def test_compare_rows_take_medians_and_report_failed_repeats():
 
 def test_speed_options_validate_and_defaults():
     assert speed.default_options("smoke").compare_repeats == 1
-    assert speed.default_options("cpu").compare_batch == 1
+    assert speed.default_options("cpu").compare_batches == (1, None)
+    with pytest.raises(ValueError, match="compare_batches"):
+        speed.SpeedOptions(compare_batches=())
+    with pytest.raises(ValueError, match="compare_batches"):
+        speed.SpeedOptions(compare_batches=(1, 0))
     with pytest.raises(ValueError, match="compare_repeats"):
         speed.SpeedOptions(compare_repeats=0)
     with pytest.raises(ValueError, match="memory_fraction"):

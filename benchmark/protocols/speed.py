@@ -23,7 +23,9 @@ Tables (rows):
 3. ``speed_vs_uorf``: sVORF (small-ray training: the scale's rays per scene and ray
    sampling) against the uORF-style configuration of the same code (every pixel of one
    target view per scene per step, density-weighted composition, slot-conditioned MLP
-   without hypernetwork), same resolution, batch, encoder, decoder and samples per ray.
+   without hypernetwork), same resolution, batch, encoder, decoder and samples per ray;
+   at each batch of ``compare_batches`` (1 = Table 8's setting, then the scale's
+   training batch: labels of batches other than 1 end in ", batch B").
    The two run alternately (sVORF, uORF-style, sVORF, ...), ``compare_repeats`` times
    each, every repeat a fresh subprocess, so machine load hits both alike; the ratio row
    "sVORF vs uORF-style" has ``step_time_ratio`` (uORF-style median step / sVORF's),
@@ -91,8 +93,9 @@ class SpeedOptions:
     """What the ``speed`` protocol measures beyond the scale's ``speed_steps``/``speed_warmup``.
 
     Attributes:
-        compare_batch: scenes per step of the sVORF / uORF-style comparison (1 = Table 8's
-            setting; None = the scale's training batch).
+        compare_batches: scenes per step of the sVORF / uORF-style comparisons, one
+            comparison each (1 = Table 8's setting; None = the scale's training batch;
+            a batch that repeats after resolving is measured once).
         compare_steps: timed steps per comparison run (None = ``speed_steps``).
         compare_warmup: untimed warm-up steps per comparison run (None = ``speed_warmup``).
         compare_repeats: fresh-subprocess runs of each configuration, alternating.
@@ -108,7 +111,7 @@ class SpeedOptions:
             reference of ``scaling_speedup`` and of ``overhead_ratio``).
     """
 
-    compare_batch: int | None = 1
+    compare_batches: tuple[int | None, ...] = (1, None)
     compare_steps: int | None = None
     compare_warmup: int | None = None
     compare_repeats: int = 3
@@ -124,7 +127,12 @@ class SpeedOptions:
         for name in ("compare_repeats", "render_repeats", "gen_scenes", "gen_resolution"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"SpeedOptions.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("compare_batch", "compare_steps", "compare_warmup", "gen_samples"):
+        if not self.compare_batches:
+            raise ValueError("SpeedOptions.compare_batches must name at least one batch")
+        for b in self.compare_batches:
+            if b is not None and int(b) < 1:
+                raise ValueError(f"SpeedOptions.compare_batches must be >= 1 each, got {b}")
+        for name in ("compare_steps", "compare_warmup", "gen_samples"):
             v = getattr(self, name)
             if v is not None and int(v) < (0 if name == "compare_warmup" else 1):
                 raise ValueError(f"SpeedOptions.{name} must be a positive count, got {v}")
@@ -138,6 +146,7 @@ class SpeedOptions:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["gen_workers"] = list(self.gen_workers)
+        d["compare_batches"] = list(self.compare_batches)
         return d
 
 
@@ -378,11 +387,14 @@ def _compare_row(
     }
 
 
-def ratio_row(svorf: dict[str, Any], uorf: dict[str, Any]) -> dict[str, Any]:
+def ratio_row(
+    svorf: dict[str, Any], uorf: dict[str, Any], label: str = RATIO_LABEL
+) -> dict[str, Any]:
     """The "sVORF vs uORF-style" row: uORF-style value / sVORF value (> 1 = sVORF better).
 
     Args:
         svorf, uorf: the two ``speed_vs_uorf`` rows (:func:`compare_training`).
+        label: the row's model label.
 
     Returns:
         A measured row with ``step_time_ratio``, ``memory_ratio``, ``train_memory_ratio``
@@ -412,15 +424,16 @@ def ratio_row(svorf: dict[str, Any], uorf: dict[str, Any]) -> dict[str, Any]:
     }
     n = min(int(svorf["n_cases"]), int(uorf["n_cases"]))
     return {
-        "id": row_id("speed_vs_uorf", RATIO_LABEL, "clevr567", "measured"),
+        "id": row_id("speed_vs_uorf", label, "clevr567", "measured"),
         "table": "speed_vs_uorf",
-        "model": RATIO_LABEL,
+        "model": label,
         "dataset": "clevr567",
         "variant": "ratio",
         "source": "measured",
         "metrics": metrics,
         "null_reasons": reasons,
         "n_cases": n if any(v is not None for v in metrics.values()) else 0,
+        "batch_scenes": svorf.get("batch_scenes"),
         "paper": dict(PAPER_RATIOS),
         "targets": dict(TARGET_RATIOS),
         "target_met": met,
@@ -435,18 +448,39 @@ def ratio_row(svorf: dict[str, Any], uorf: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def compare_batches(ctx: Context, options: SpeedOptions) -> list[int]:
+    """``options.compare_batches`` resolved (None = the scale's training batch), in order,
+    each batch once."""
+    from benchmark import adapter
+
+    scale_batch = adapter.train_config(ctx.scale, "clevr567", "full", 0, "cpu").batch_scenes
+    out: list[int] = []
+    for b in options.compare_batches:
+        b = int(scale_batch if b is None else b)
+        if b not in out:
+            out.append(b)
+    return out
+
+
+def _batch_label(label: str, batch: int) -> str:
+    """Row label of a comparison at ``batch`` (batch 1, Table 8's setting, keeps the
+    plain label and so the row ids of earlier reports)."""
+    return label if batch == 1 else f"{label}, batch {batch}"
+
+
 def compare_training(
-    ctx: Context, options: SpeedOptions, store: RowStore | None = None
+    ctx: Context, options: SpeedOptions, store: RowStore | None = None, batch: int = 1
 ) -> list[dict[str, Any]]:
     """sVORF against the uORF-style configuration of the same code, side by side.
 
     Runs ``options.compare_repeats`` fresh worker subprocesses of each configuration,
-    alternating (sVORF first), at the same batch (``options.compare_batch``), resolution
+    alternating (sVORF first), at the same batch (``batch`` scenes per step), resolution
     and model size. Each run's raw result is kept in ``store`` (if given), so an
     interrupted comparison resumes with the repeats it has.
 
     Returns:
-        Three ``speed_vs_uorf`` rows: sVORF, uORF-style and the ratio row (:func:`ratio_row`).
+        Three ``speed_vs_uorf`` rows: sVORF, uORF-style and the ratio row (:func:`ratio_row`);
+        their labels end in ", batch B" unless ``batch`` is 1.
     """
     job = ModelJob("full", "clevr567")
     steps = options.compare_steps or ctx.settings.speed_steps
@@ -457,7 +491,7 @@ def compare_training(
     errors: dict[str, list[str]] = {"svorf": [], "uorf": []}
     for i in range(options.compare_repeats):
         for style in ("svorf", "uorf"):
-            rid = f"speed_vs_uorf|raw|{style}|{i}|b{options.compare_batch}|s{steps}|w{warmup}"
+            rid = f"speed_vs_uorf|raw|{style}|{i}|b{batch}|s{steps}|w{warmup}"
             raw = store.get(rid) if store is not None else None
             if raw is None:
                 load_before = _loadavg()
@@ -465,7 +499,7 @@ def compare_training(
                     _args(
                         ctx,
                         job,
-                        options.compare_batch,
+                        batch,
                         f"cmp-{style}",
                         warmup=warmup,
                         steps=steps,
@@ -485,9 +519,9 @@ def compare_training(
             if "error" in m:
                 lim = f"{limit:.0f} MiB" if limit else "none"
                 errors[style].append(f"{m['error']} (address-space limit {lim}): {m['message']}")
-    svorf = _compare_row(SVORF_LABEL, "svorf", runs["svorf"], errors["svorf"])
-    uorf = _compare_row(UORF_LABEL, "uorf", runs["uorf"], errors["uorf"])
-    return [svorf, uorf, ratio_row(svorf, uorf)]
+    svorf = _compare_row(_batch_label(SVORF_LABEL, batch), "svorf", runs["svorf"], errors["svorf"])
+    uorf = _compare_row(_batch_label(UORF_LABEL, batch), "uorf", runs["uorf"], errors["uorf"])
+    return [svorf, uorf, ratio_row(svorf, uorf, _batch_label(RATIO_LABEL, batch))]
 
 
 # ------------------------------------------------------------------------- generator
@@ -667,7 +701,9 @@ def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
             inference = _inference_rows(row["raw"], ctx.scale)
             row = {k: v for k, v in row.items() if k != "raw"}
         rows.append(row)
-    cmp_rows = compare_training(ctx, options, store)
+    cmp_rows = [
+        r for b in compare_batches(ctx, options) for r in compare_training(ctx, options, store, b)
+    ]
     rows.extend(cmp_rows)
     rows.extend(inference)
     ids = _gen_ids(options)
@@ -679,7 +715,6 @@ def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
                 store.put(r)
     rows.extend(gen)
     report["rows"] = rows
-    ratio = cmp_rows[-1]
     report["notes"] = [
         (
             "tab:time in the paper: batch size 1 on an NVIDIA V100, full model at 128x128 "
@@ -690,7 +725,7 @@ def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
             "+ the training split included); train_memory_mb is that peak minus the resident "
             "size at the first training step. CUDA memory is torch.cuda.max_memory_allocated."
         ),
-        _ratio_note(ratio),
+        *(_ratio_note(r) for r in cmp_rows if r["variant"] == "ratio"),
         *ctx.settings.notes,
     ]
     from benchmark.figures import speed_chart, speed_compare_chart
@@ -726,6 +761,9 @@ def _ratio_note(row: dict[str, Any]) -> str:
             tail += f", target >= {goal}x {'met' if met.get(k) else 'NOT met'}"
         return f"{k} {v:.2f}x{tail}"
 
-    return "sVORF vs uORF-style (same run, same batch and resolution): " + "; ".join(
-        show(k) for k in ("step_time_ratio", "memory_ratio", "train_memory_ratio")
+    head = f"sVORF vs uORF-style at batch {row.get('batch_scenes')} (same run, same batch "
+    return (
+        head
+        + "and resolution): "
+        + "; ".join(show(k) for k in ("step_time_ratio", "memory_ratio", "train_memory_ratio"))
     )
