@@ -154,6 +154,19 @@ def azimuth_frame(cam_to_world: Tensor) -> Tensor:
     return torch.stack(rows, -2)
 
 
+def centre_anchors(k: int, extent: float, height: float) -> Tensor:
+    """Fixed anchors [K, 3] of ``slot_centre="anchored"``: the K-1 foreground slots on a
+    sunflower (Fibonacci) disk of radius 0.6 ``extent`` at z = ``height`` (slot i at radius
+    0.6 e sqrt((i + 0.5) / (K - 1)), angle i x the golden angle: evenly spread, no two
+    on one spot); the last (background) slot at the origin (its centre is never used)."""
+    n = max(k - 1, 1)
+    i = torch.arange(k - 1, dtype=torch.float64)
+    r = 0.6 * extent * torch.sqrt((i + 0.5) / n)
+    theta = i * math.pi * (3.0 - math.sqrt(5.0))
+    fg = torch.stack([r * torch.cos(theta), r * torch.sin(theta), torch.full_like(r, height)], -1)
+    return torch.cat([fg, torch.zeros(1, 3, dtype=torch.float64)]).float()
+
+
 def token_ground_points(
     cam_to_world: Tensor, h: int, w: int, focal: float, height: float, extent: float
 ) -> Tensor:
@@ -208,7 +221,7 @@ class SVORF(nn.Module):
         if cfg.composition != "density_weighted":
             self.composer = SlotGuidedComposer(cfg, self.fields.in_x)
         self.slot_centre: nn.Linear | None = None  # ModelConfig.slot_locality
-        if cfg.slot_locality is not None and cfg.slot_centre == "learned":
+        if cfg.slot_locality is not None and cfg.slot_centre in ("learned", "anchored"):
             self.slot_centre = nn.Linear(cfg.slot_dim, 3)
 
     # ------------------------------------------------------------------ encoding
@@ -242,7 +255,7 @@ class SVORF(nn.Module):
     def encode_for_render(self, images: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """(slots [B, K, D], the extra keyword arguments :meth:`render_rays` needs for them):
         ``{"slot_attn": ...}`` with ``slot_centre="attention"``, else ``{}``."""
-        if self.cfg.slot_centre != "learned" and self.cfg.slot_locality is not None:
+        if self.cfg.slot_centre.startswith("attention") and self.cfg.slot_locality is not None:
             slots, attn = self.encode(images, return_attn=True)
             return slots, {"slot_attn": attn}
         return self.encode(images), {}
@@ -675,7 +688,9 @@ class SVORF(nn.Module):
     ) -> Tensor | None:
         """Slot-locality centres [B, K, 3] (networks' frame), None when slot_locality is off.
 
-        ``slot_centre="learned"``: e * tanh(Linear(s_k)). ``"attention"``: the
+        ``slot_centre="learned"``: e * tanh(Linear(s_k)). ``"anchored"``: a_k + e/2 *
+        tanh(Linear(s_k)) (:func:`centre_anchors`; the background slot's centre is
+        unused). ``"attention"``: the
         attention-weighted mean of the feature-map tokens' ground points (see
         :func:`token_ground_points`), rotated into the networks' frame by ``frame``.
         """
@@ -686,6 +701,11 @@ class SVORF(nn.Module):
         if cfg.slot_centre == "learned":
             assert self.slot_centre is not None
             return extent * torch.tanh(self.slot_centre(slots.float()))
+        if cfg.slot_centre == "anchored":
+            assert self.slot_centre is not None
+            anchors = centre_anchors(slots.shape[1], extent, cfg.centre_height)
+            offset = 0.5 * extent * torch.tanh(self.slot_centre(slots.float()))
+            return anchors.to(slots.device) + offset
         B, K, _ = slots.shape
         if slot_attn is None or input_c2w is None:
             raise ValueError(

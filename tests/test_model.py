@@ -613,6 +613,37 @@ def test_token_ground_points_match_an_independent_ray_plane_cut():
     assert clamped[..., :2].abs().max() <= 1.0 and (clamped[..., 2] == z0).all()
 
 
+def test_anchored_centres_are_spread_anchors_plus_a_bounded_learned_offset():
+    """slot_centre='anchored': c_k = a_k + e/2 tanh(Linear(s_k)), anchors on a sunflower
+    disk of radius 0.6 e; with a zero offset map the centres are the anchors, and the
+    offset map gets gradients from the reconstruction loss."""
+    from svorf.model import centre_anchors
+
+    a = centre_anchors(8, 3.75, 0.35)
+    assert a.shape == (8, 3) and torch.equal(a[-1], torch.zeros(3))
+    fg = a[:-1]
+    assert bool((fg[:, 2] == 0.35).all()) and float(fg[:, :2].norm(dim=-1).max()) <= 0.6 * 3.75
+    dist = torch.cdist(fg, fg) + torch.eye(7) * 1e9
+    assert float(dist.min()) > 0.8  # evenly spread: no two anchors near one spot
+    model = smoke(num_slots=4, slot_locality=1.0, slot_centre="anchored", fg_box=3.0).eval()
+    slots = model.encode(make_images(2))
+    c = model._centres(slots)
+    off = c - centre_anchors(4, 3.0, model.cfg.centre_height)
+    assert float(off.abs().max()) <= 1.5 and float(off.abs().max()) > 0
+    with torch.no_grad():
+        model.slot_centre.weight.zero_()
+        model.slot_centre.bias.zero_()
+    torch.testing.assert_close(model._centres(slots), centre_anchors(4, 3.0, 0.35).expand(2, 4, 3))
+    assert model.encode_for_render(make_images(1))[1] == {}  # no attention maps needed
+    model = smoke(num_slots=4, slot_locality=1.0, slot_centre="anchored", fg_box=3.0).train()
+    o, d = make_rays(2, 8)
+    out = model(make_images(2), o, d, perturb=True)
+    assert_finite(out)
+    model.loss(out, torch.rand(2, 8, 3))[0].backward()
+    g = model.slot_centre.weight.grad
+    assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
+
+
 def test_attention_centres_follow_each_slots_attention():
     """slot_centre='attention': c_k = sum_t attn_kt * ground_t (then into the networks'
     frame); encode returns attention maps that sum to 1; rendering needs them."""
