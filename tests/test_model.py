@@ -626,8 +626,9 @@ def test_anchored_centres_are_spread_anchors_plus_a_bounded_learned_offset():
     dist = torch.cdist(fg, fg) + torch.eye(7) * 1e9
     assert float(dist.min()) > 0.8  # evenly spread: no two anchors near one spot
     model = smoke(num_slots=4, slot_locality=1.0, slot_centre="anchored", fg_box=3.0).eval()
-    slots = model.encode(make_images(2))
-    c = model._centres(slots)
+    with torch.no_grad():
+        slots = model.encode(make_images(2))
+        c = model._centres(slots)
     off = c - centre_anchors(4, 3.0, model.cfg.centre_height)
     assert float(off.abs().max()) <= 1.5 and float(off.abs().max()) > 0
     with torch.no_grad():
