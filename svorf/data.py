@@ -137,7 +137,11 @@ def rays_at(K: Tensor, cam_to_world: Tensor, u: Tensor, v: Tensor) -> tuple[Tens
         ``(rays_d [..., 3] unit world directions, z_scale [...] camera-z of the unit
         direction)``, with the broadcast shape of ``u``, ``v`` and ``K``'s leading dims.
     """
-    kinv = torch.linalg.inv(K.double())
+    return _rays_from_kinv(torch.linalg.inv(K.double()), cam_to_world, u, v)
+
+
+def _rays_from_kinv(kinv: Tensor, cam_to_world: Tensor, u: Tensor, v: Tensor):
+    """:func:`rays_at` with ``K^-1`` (float64) given: the dataset inverts each K once."""
     rot = cam_to_world.double()[..., :3, :3]
     uc, vc = u.double() + 0.5, v.double() + 0.5
     # d_cam = K^-1 [u, v, 1]; K^-1 is upper triangular for every K a camera writes, but
@@ -358,6 +362,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
         # cached) and float32 (what the model receives). No per-pixel ray cache: it took
         # 16 of every 25 bytes per pixel, and a batch needs only R rays per scene.
         self._K64 = K.double()  # [N, V, 3, 3]
+        self._Kinv64 = torch.linalg.inv(self._K64)  # per batch: no inverse on the hot path
         self._c2w64 = c2w.double()  # [N, V, 4, 4]
         self._K = K.float()
         self._c2w = c2w.float()
@@ -599,7 +604,8 @@ class MultiViewDataset(torch.utils.data.Dataset):
         indices ``pixels`` [R] (``row * W + column``) of ``views`` [R]: the same values as
         ``self[i].rays_d[views, row, column]``, computed for these pixels only."""
         w = self.image_hw[1]
-        rays_d, _ = rays_at(self._K64[i][views], self._c2w64[i][views], pixels % w, pixels // w)
+        kinv, c2w = self._Kinv64[i][views], self._c2w64[i][views]
+        rays_d, _ = _rays_from_kinv(kinv, c2w, pixels % w, pixels // w)
         return self._rays_o[i][views], rays_d
 
     def images(self, i: int, views: Tensor | Sequence[int] | None = None) -> Tensor:
