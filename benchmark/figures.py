@@ -282,22 +282,27 @@ def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], sca
     ax.set_title("median training step (s)", fontsize=9)
     ax = axes[1]
     x = np.arange(len(sel))
-    for off, key, hatch in ((-0.2, "peak_memory_mb", ""), (0.2, "train_memory_mb", "//")):
+    bars = (
+        (-0.27, "peak_memory_mb", ""),
+        (0.0, "train_memory_mb", "//"),
+        (0.27, "tensor_peak_mb", ".."),
+    )
+    for off, key, hatch in bars:
         vals = [r["metrics"].get(key) for r in sel]
-        ax.bar(x + off, [np.nan if v is None else v for v in vals], 0.4, color=colors,
+        ax.bar(x + off, [np.nan if v is None else v for v in vals], 0.27, color=colors,
                hatch=hatch, edgecolor="k", lw=0.5, label=key)  # fmt: skip
         for i, v in enumerate(vals):
             ax.text(i + off, v or 0.0, "null" if v is None else f"{v:.0f}", ha="center",
-                    va="bottom", fontsize=7)  # fmt: skip
+                    va="bottom", fontsize=6)  # fmt: skip
     ax.legend(fontsize=7, frameon=False)
-    ax.set_title("memory (MiB): peak / added by training", fontsize=9)
+    ax.set_title("memory (MiB): process peak / added by training / tensor peak", fontsize=9)
     for ax in axes:
         ax.set_xticks(range(len(sel)))
         ax.set_xticklabels(labels, fontsize=7)
     title = f"sVORF vs uORF-style configuration of the same code ({scale}, one run)"
     for ratio in ratios:
         title += f"\nbatch {ratio.get('batch_scenes')}: " + "; ".join(
-            _ratio_text(ratio, k) for k in ("step_time_ratio", "memory_ratio", "train_memory_ratio")
+            _ratio_text(ratio, k) for k in ratio["metrics"]
         )
     fig.suptitle(title, fontsize=9, y=1.02 + 0.03 * len(ratios))
     _save(fig, path)

@@ -93,6 +93,9 @@ METRIC_UNITS: dict[str, str] = {
     "step_time_ratio": "ratio (uORF-style median step time / sVORF's; > 1 = sVORF faster)",
     "memory_ratio": "ratio (uORF-style peak memory / sVORF's; > 1 = sVORF smaller)",
     "train_memory_ratio": "ratio (uORF-style train_memory_mb / sVORF's; > 1 = sVORF smaller)",
+    "tensor_peak_mb": "MiB (peak live tensor bytes during training: CUDA max_memory_allocated, "
+    "CPU allocator events of torch.profiler)",
+    "tensor_memory_ratio": "ratio (uORF-style tensor_peak_mb / sVORF's; > 1 = sVORF smaller)",
     "images_per_s": "1/s (rendered images per second)",
     "s_per_view": "s (wall seconds per rendered view)",
     "overhead_ratio": "ratio (generate s/view / bare Cycles s/view, same views and settings)",

@@ -695,6 +695,9 @@ def train(
             ) from e
         start, wall_offset = int(ckpt["step"]), float(ckpt.get("wall_s", 0.0))
         resumed_loss = float(ckpt.get("loss", math.nan))
+        # The state now lives in model/optimizer; the checkpoint's own copy of the weights
+        # would otherwise stay alive (a second copy of the model) for the whole run.
+        del ckpt
         if main:
             _truncate_jsonl(log_path, start)
             _truncate_jsonl(eval_path, start)

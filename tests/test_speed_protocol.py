@@ -69,8 +69,13 @@ def test_uorf_style_trains_a_full_image_step(tmp_path):
     assert worker._step_times(tmp_path / "run" / "log.jsonl", 0)
 
 
-def _side(model: str, step, peak, train_mem, n=6):
-    metrics = {"step_time_s": step, "peak_memory_mb": peak, "train_memory_mb": train_mem}
+def _side(model: str, step, peak, train_mem, n=6, tensor=None):
+    metrics = {
+        "step_time_s": step,
+        "peak_memory_mb": peak,
+        "train_memory_mb": train_mem,
+        "tensor_peak_mb": tensor,
+    }
     return {
         "model": model,
         "metrics": metrics,
@@ -80,18 +85,41 @@ def _side(model: str, step, peak, train_mem, n=6):
 
 
 def test_ratio_row_values_targets_and_nulls():
-    row = speed.ratio_row(_side("a", 0.1, 500.0, 100.0), _side("b", 0.4, 1000.0, 800.0))
+    row = speed.ratio_row(
+        _side("a", 0.1, 500.0, 100.0, tensor=60.0), _side("b", 0.4, 1000.0, 800.0, tensor=330.0)
+    )
     m = row["metrics"]
-    assert m == {"step_time_ratio": 4.0, "memory_ratio": 2.0, "train_memory_ratio": 8.0}
-    assert row["target_met"] == {"step_time_ratio": True, "memory_ratio": False}
-    assert row["paper"] == {"step_time_ratio": 2.559, "memory_ratio": 5.13}
-    assert row["targets"] == {"step_time_ratio": 3.0, "memory_ratio": 5.0}
+    assert m == {
+        "step_time_ratio": 4.0,
+        "memory_ratio": 2.0,
+        "train_memory_ratio": 8.0,
+        "tensor_memory_ratio": 5.5,
+    }
+    assert row["target_met"] == {
+        "step_time_ratio": True,
+        "memory_ratio": False,
+        "tensor_memory_ratio": True,
+    }
+    assert row["paper"] == {
+        "step_time_ratio": 2.559,
+        "memory_ratio": 5.13,
+        "tensor_memory_ratio": 5.13,
+    }
+    assert row["targets"] == {
+        "step_time_ratio": 3.0,
+        "memory_ratio": 5.0,
+        "tensor_memory_ratio": 5.0,
+    }
     assert row["source"] == "measured" and row["null_reasons"] == {}
     # the uORF-style side did not fit: ratios null with the side's reason, target unknown
     row = speed.ratio_row(_side("a", 0.1, 500.0, 100.0), _side("b", None, None, None, n=0))
     assert all(v is None for v in row["metrics"].values())
     assert "out_of_memory" in row["null_reasons"]["memory_ratio"]
-    assert row["target_met"] == {"step_time_ratio": None, "memory_ratio": None}
+    assert row["target_met"] == {
+        "step_time_ratio": None,
+        "memory_ratio": None,
+        "tensor_memory_ratio": None,
+    }
     assert row["n_cases"] == 0
 
 
@@ -148,6 +176,8 @@ def test_new_speed_rows_pass_the_schema():
         "step_time_ratio",
         "memory_ratio",
         "train_memory_ratio",
+        "tensor_peak_mb",
+        "tensor_memory_ratio",
         "images_per_s",
         "s_per_view",
         "overhead_ratio",
@@ -170,3 +200,57 @@ def test_new_speed_rows_pass_the_schema():
     rep["rows"] = rows
     problems = [p for p in check_report(rep) if "rows" in p]
     assert problems == []
+
+
+def test_tensor_memory_curve_closed_form():
+    mib = 2**20
+    # (time, bytes): 2 MiB set-up freed before the start, then a step that holds 3 MiB at once
+    events = [(0, 2 * mib), (1, -2 * mib), (2, 1 * mib), (5, 2 * mib), (6, -2 * mib), (3, mib)]
+    out = worker.tensor_memory_curve(events, start_ns=3)
+    # live at t=3 (before its event): 1 MiB; then 2, 4, 2 -> peak 4, added 3
+    assert out == {"tensor_peak_mb": 4.0, "tensor_train_mb": 3.0}
+    # no start: the whole call counts from zero
+    assert worker.tensor_memory_curve(events, None) == {
+        "tensor_peak_mb": 4.0,
+        "tensor_train_mb": 4.0,
+    }
+    # a start after every event: nothing happened during training
+    assert worker.tensor_memory_curve(events, 10) == {
+        "tensor_peak_mb": 2.0,
+        "tensor_train_mb": 0.0,
+    }
+
+
+def test_profiled_tensor_memory_sees_a_real_training_step(tmp_path):
+    """The CPU measure on a real (smoke) training call: the first step's activations and
+    gradients are counted, and a known extra allocation in the step moves the peak."""
+    data = adapter.write_synthetic_split(tmp_path / "train", n_scenes=2, resolution=16, seed=0)
+    mcfg = adapter.model_config("smoke", "clevr567", image_size=16)
+    tcfg = adapter.train_config("smoke", "clevr567", "full", 0, "cpu", steps=1)
+    tcfg = tcfg.replace(batch_scenes=1, log_every=1)
+    out = worker._profiled_tensor_memory(adapter, str(data), tmp_path / "run", mcfg, tcfg)
+    from svorf.model import SVORF
+
+    params_mb = sum(p.numel() * 4 for p in SVORF(mcfg).parameters()) / 2**20
+    # the peak holds at least the weights and their gradients
+    assert out["tensor_peak_mb"] >= 2 * params_mb
+    assert 0.0 < out["tensor_train_mb"] <= out["tensor_peak_mb"]
+
+    extra = 64 * 2**20  # 64 MiB held across one module's forward during the step
+    held = []
+
+    def hook(module, args):
+        if not held:
+            held.append(torch.empty(extra, dtype=torch.uint8))
+
+    def release(module, args, output):
+        held.clear()
+
+    h1 = torch.nn.modules.module.register_module_forward_pre_hook(hook)
+    h2 = torch.nn.modules.module.register_module_forward_hook(release)
+    try:
+        big = worker._profiled_tensor_memory(adapter, str(data), tmp_path / "run2", mcfg, tcfg)
+    finally:
+        h1.remove()
+        h2.remove()
+    assert big["tensor_peak_mb"] >= 64.0

@@ -21,6 +21,12 @@ Memory: ``peak_memory_mb`` (CPU: peak RSS of this process; CUDA:
 the memory in use when the first training step starts (dataset, model and optimizer
 built; recorded by a global module forward pre-hook).
 
+Tensor memory: ``tensor_peak_mb`` / ``tensor_train_mb`` (live tensor bytes: the measure
+of the paper's GPU figure). CUDA: ``max_memory_allocated`` (train: null). CPU: after the
+timed steps, ``tensor_memory_steps`` (default 2) more untimed steps run under
+``torch.profiler`` with ``profile_memory=True`` and the running sum of its allocator events
+gives the peak (:func:`tensor_memory_curve`); 0 skips it (both null).
+
 Step times: the timed steps' own durations from svorf's ``log.jsonl`` (``log_every=1``:
 ``1 / steps_per_s`` of each line; data sampling, forward, backward and the optimizer
 step, checkpoint writes excluded), so the protocol can take a median.
@@ -118,6 +124,77 @@ class _FirstStepMemory:
             self._handle.remove()
 
 
+class _FirstForwardTime:
+    """Wall-clock time (``time.time_ns``) of the first module forward after construction."""
+
+    def __init__(self) -> None:
+        import torch
+
+        self.ns: int | None = None
+        self._handle = torch.nn.modules.module.register_module_forward_pre_hook(self._hook)
+
+    def _hook(self, module: Any, args: Any) -> None:
+        if self.ns is None:
+            self.ns = time.time_ns()
+            self._handle.remove()
+
+
+def tensor_memory_curve(events: list[tuple[int, int]], start_ns: int | None) -> dict[str, float]:
+    """Peak live tensor memory from allocator events (the profiler's ``[memory]`` events).
+
+    Args:
+        events: ``(time_ns, nbytes)`` pairs, nbytes > 0 for an allocation, < 0 for a free,
+            in any order.
+        start_ns: when the first training step began (None: the first event).
+
+    Returns:
+        ``tensor_peak_mb``: the largest sum of live bytes (MiB, counted from the first
+        event: everything the call allocates, so model, optimizer state, data batches and
+        activations) from the moment the first step began on (the set-up before it, such
+        as reading a checkpoint, is not training); ``tensor_train_mb``: that peak minus the
+        sum when the first step began (what the steps add).
+    """
+    live = 0
+    at_start: int | None = None if start_ns is not None else 0
+    peak = 0
+    for t, nb in sorted(events):
+        if at_start is None and t >= start_ns:  # type: ignore[operator]
+            at_start = peak = live
+        live += nb
+        if at_start is not None:
+            peak = max(peak, live)
+    if at_start is None:  # nothing happened after the start
+        at_start = peak = live
+    mib = float(2**20)
+    return {"tensor_peak_mb": peak / mib, "tensor_train_mb": max(0, peak - at_start) / mib}
+
+
+def _profiled_tensor_memory(
+    adapter: Any, train_dir: str, work: Path, mcfg: Any, tcfg: Any
+) -> dict[str, float]:
+    """Live tensor memory of a resumed training call on the CPU (torch profiler events).
+
+    The CPU has no ``max_memory_allocated``: this is its analogue. ``torch.profiler`` with
+    ``profile_memory=True`` records every allocation and free of the c10 CPU allocator
+    (tensors only: not Python, not the libraries, not numpy arrays); the running sum of
+    those events over the call, and its rise after the first step began, are what
+    :func:`tensor_memory_curve` returns. Profiling slows the steps, so these steps are
+    not timed.
+    """
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    first = _FirstForwardTime()
+    with profile(activities=[ProfilerActivity.CPU], profile_memory=True) as prof:
+        adapter.train(train_dir, work, mcfg, tcfg, progress=False)
+    events = [
+        (int(e.start_ns()), int(e.nbytes()))
+        for e in prof.profiler.kineto_results.events()
+        if e.name() == "[memory]" and e.device_type() == DeviceType.CPU
+    ]
+    return tensor_memory_curve(events, first.ns)
+
+
 def _step_times(log: Path, after_step: int) -> list[float]:
     """Seconds of each logged step after ``after_step`` (``log_every=1``)."""
     out = []
@@ -211,12 +288,25 @@ def main(argv: list[str]) -> int:
         return 0
     s_per_step = summary.get("s_per_step") or timed_wall / a["steps"]
     steps = _step_times(work / "log.jsonl", int(a["warmup"]))
+    tensor: dict[str, Any] = {"tensor_peak_mb": None, "tensor_train_mb": None}
     if cuda:
         peak_mb = torch.cuda.max_memory_allocated() / 2**20
         kind = "torch.cuda.max_memory_allocated during the timed steps"
+        tensor = {"tensor_peak_mb": peak_mb, "tensor_train_mb": None}
+        tensor_kind = kind
     else:
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         kind = "peak RSS of the measuring process (CPU)"
+        tensor_kind = "not measured (tensor_memory_steps = 0)"
+        n_prof = int(a.get("tensor_memory_steps", 2))
+        if n_prof > 0:
+            prof_cfg = timed.replace(steps=int(timed.steps) + n_prof)
+            tensor = _profiled_tensor_memory(adapter, a["train_dir"], work, mcfg, prof_cfg)
+            tensor_kind = (
+                f"live tensor bytes of the CPU allocator (torch.profiler memory events) over "
+                f"a resumed training call of {n_prof} untimed step(s): the CPU analogue of "
+                "torch.cuda.max_memory_allocated"
+            )
     out: dict[str, Any] = {
         "style": style,
         "s_per_step": float(s_per_step),
@@ -231,6 +321,8 @@ def main(argv: list[str]) -> int:
         "memory_at_first_step_mb": first_step.mb,
         "train_memory_mb": None if first_step.mb is None else max(0.0, peak_mb - first_step.mb),
         "memory_kind": kind,
+        **tensor,
+        "tensor_memory_kind": tensor_kind,
         "batch_scenes": int(timed.batch_scenes),
         "rays_per_scene": int(timed.rays_per_scene),
         "ray_sampling": timed.ray_sampling,

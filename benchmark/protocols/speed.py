@@ -12,6 +12,9 @@ so that its peak memory belongs to that training alone:
   optimizer already built): what the training steps themselves add. CUDA:
   ``torch.cuda.max_memory_allocated`` (tensors only) and that minus the memory allocated
   at the first step.
+- ``tensor_peak_mb``: the peak of live tensor bytes during training, the measure of the
+  paper's GPU figure (CUDA: ``max_memory_allocated``; CPU: the allocator events that
+  ``torch.profiler`` records over a few extra untimed steps, see the worker).
 - step time: the median of the timed steps' own durations (svorf's per-step log, after
   warm-up steps; checkpoint writes excluded). ``steps_per_s`` is its inverse.
 
@@ -29,7 +32,8 @@ Tables (rows):
    The two run alternately (sVORF, uORF-style, sVORF, ...), ``compare_repeats`` times
    each, every repeat a fresh subprocess, so machine load hits both alike; the ratio row
    "sVORF vs uORF-style" has ``step_time_ratio`` (uORF-style median step / sVORF's),
-   ``memory_ratio`` (peak memory) and ``train_memory_ratio`` (memory added by training),
+   ``memory_ratio`` (peak memory), ``train_memory_ratio`` (memory added by training) and
+   ``tensor_memory_ratio`` (peak live tensor bytes),
    with the paper's ratios (Table 8: 522 s / 204 s = 2.56x, 23.6 GB / 4.6 GB = 5.13x)
    and issue 7's targets (>= 3x, >= 5x) as plain fields, never as measured values.
 4. ``speed_generator``: seconds per view of ``generate`` (a fresh command per worker
@@ -79,9 +83,24 @@ PAPER_EPOCH_SCENES = 1000  # CLEVR-567 training split
 PAPER_RATIOS: dict[str, float] = {
     "step_time_ratio": round(522.0 / 204.0, 3),
     "memory_ratio": round(23.6 / 4.6, 3),
+    "tensor_memory_ratio": round(23.6 / 4.6, 3),  # GPU memory is tensor memory
 }
-#: Issue 7's targets for the same ratios (sVORF at least this much faster / smaller).
-TARGET_RATIOS: dict[str, float] = {"step_time_ratio": 3.0, "memory_ratio": 5.0}
+#: The ratio row's metrics, in the order notes and figures show them.
+RATIO_KEYS: tuple[str, ...] = (
+    "step_time_ratio",
+    "memory_ratio",
+    "train_memory_ratio",
+    "tensor_memory_ratio",
+)
+#: Issue 7's targets for the same ratios (sVORF at least this much faster / smaller). The
+#: memory target is checked on both memory measures: the whole process (``memory_ratio``;
+#: on a CPU it carries Python, torch and the data on both sides) and live tensor bytes
+#: (``tensor_memory_ratio``, what the paper's GPU memory counts).
+TARGET_RATIOS: dict[str, float] = {
+    "step_time_ratio": 3.0,
+    "memory_ratio": 5.0,
+    "tensor_memory_ratio": 5.0,
+}
 
 SVORF_LABEL = "sVORF (small-ray training)"
 UORF_LABEL = "uORF-style (full image, density-weighted, slot-conditioned MLP)"
@@ -348,13 +367,19 @@ def _compare_row(
     step = _median(steps)
     peak = _median([r["peak_memory_mb"] for r in ok])
     train_mem = _median([r["train_memory_mb"] for r in ok if r.get("train_memory_mb") is not None])
+    tensor_peak = _median([r["tensor_peak_mb"] for r in ok if r.get("tensor_peak_mb") is not None])
     metrics: dict[str, float | None] = {
         "step_time_s": step,
         "steps_per_s": 1.0 / step if step else None,
         "peak_memory_mb": peak,
         "train_memory_mb": train_mem,
+        "tensor_peak_mb": tensor_peak,
     }
     why = "; ".join(errors) if errors else "not_measured"
+    if ok and tensor_peak is None:
+        why_tensor = "tensor memory not measured (tensor_memory_steps = 0)"
+    else:
+        why_tensor = why
     first = ok[0] if ok else {}
     return {
         "id": row_id("speed_vs_uorf", model, "clevr567", "measured"),
@@ -364,7 +389,11 @@ def _compare_row(
         "variant": "full" if style == "svorf" else "uorf_style",
         "source": "measured",
         "metrics": metrics,
-        "null_reasons": {k: why for k, v in metrics.items() if v is None},
+        "null_reasons": {
+            k: (why_tensor if k == "tensor_peak_mb" else why)
+            for k, v in metrics.items()
+            if v is None
+        },
         "n_cases": len(steps),
         "repeats": len(ok),
         "repeats_failed": len(runs) - len(ok),
@@ -376,6 +405,9 @@ def _compare_row(
         "rays_per_scene": first.get("rays_per_scene"),
         "ray_sampling": first.get("ray_sampling"),
         "memory_kind": first.get("memory_kind"),
+        "tensor_peak_mb_per_repeat": [r.get("tensor_peak_mb") for r in ok],
+        "tensor_train_mb_per_repeat": [r.get("tensor_train_mb") for r in ok],
+        "tensor_memory_kind": first.get("tensor_memory_kind"),
         "params": first.get("params"),
         "device": first.get("device"),
         "model_config": first.get("model_config"),
@@ -405,6 +437,7 @@ def ratio_row(
         "step_time_ratio": "step_time_s",
         "memory_ratio": "peak_memory_mb",
         "train_memory_ratio": "train_memory_mb",
+        "tensor_memory_ratio": "tensor_peak_mb",
     }
     metrics: dict[str, float | None] = {}
     reasons: dict[str, str] = {}
@@ -440,10 +473,12 @@ def ratio_row(
         "note": (
             "uORF-style / sVORF, same run (alternating fresh subprocesses); "
             "step_time_ratio from median step times, memory_ratio from peak memory, "
-            "train_memory_ratio from the memory the training steps add; paper = Table 8 "
-            "(uORF coarse vs sVORF, V100 GPU memory), targets = issue 7; "
-            "memory_ratio is the issue's target measure, train_memory_ratio the closer "
-            "analogue of GPU memory on a CPU"
+            "train_memory_ratio from the memory the training steps add, tensor_memory_ratio "
+            "from the peak of live tensor bytes (the measure of the paper's GPU figure: "
+            "max_memory_allocated on CUDA, the allocator's profiler events on a CPU); "
+            "paper = Table 8 (uORF coarse vs sVORF, V100 GPU memory), targets = issue 7, "
+            "checked on the whole-process peak (memory_ratio) and on tensor memory "
+            "(tensor_memory_ratio); on CUDA the two are the same measure"
         ),
     }
 
@@ -762,8 +797,4 @@ def _ratio_note(row: dict[str, Any]) -> str:
         return f"{k} {v:.2f}x{tail}"
 
     head = f"sVORF vs uORF-style at batch {row.get('batch_scenes')} (same run, same batch "
-    return (
-        head
-        + "and resolution): "
-        + "; ".join(show(k) for k in ("step_time_ratio", "memory_ratio", "train_memory_ratio"))
-    )
+    return head + "and resolution): " + "; ".join(show(k) for k in RATIO_KEYS)
