@@ -46,6 +46,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from scenefmt import atomic_write_json
 from svorf.config import ModelConfig
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
@@ -55,12 +56,15 @@ __all__ = [
     "RECIPE_LEVERS",
     "SegMetricsFn",
     "adjusted_rand_index",
+    "failure_breakdown",
     "make_eval_fn",
+    "object_failures",
     "plot_runs",
     "recipe_configs",
     "recipe_model_levers",
     "save_segmentation_grid",
     "segmentation_metrics_basic",
+    "summarize_failures",
     "train_eval",
 ]
 
@@ -232,6 +236,108 @@ def _labels_with_slots_of(
     return out.slot_probs[0].argmax(-1).view(h, w).cpu()
 
 
+# --------------------------------------------------------------------------- failures
+
+
+def object_failures(pred: Tensor, gt: Tensor, bg_slot: int) -> list[dict[str, Any]]:
+    """How each ground-truth object of one view is segmented.
+
+    Every object (id != 0 of ``gt``) gets its dominant slot: the predicted label that
+    covers most of its pixels. The object is ``"lost"`` when that is the background slot,
+    ``"merged"`` when another object of the view has the same dominant foreground slot,
+    else ``"own"`` (a slot of its own).
+
+    Args:
+        pred: int [H, W] predicted slot labels.
+        gt: int [H, W] ground-truth instance ids, 0 = background.
+        bg_slot: the background slot's label (K - 1).
+
+    Returns:
+        One dict per object, in id order: ``id``, ``pixels``, ``slot`` (dominant),
+        ``share`` (its fraction of the object's pixels), ``kind`` ("lost", "merged", "own").
+    """
+    if pred.shape != gt.shape:
+        raise ValueError(f"object_failures: pred {tuple(pred.shape)} != gt {tuple(gt.shape)}")
+    p, g = pred.reshape(-1).long(), gt.reshape(-1).long()
+    rows = []
+    for oid in torch.unique(g).tolist():
+        if oid == 0:
+            continue
+        labels = p[g == oid]
+        counts = torch.bincount(labels)
+        slot = int(counts.argmax())
+        share = float(counts[slot]) / labels.numel()
+        rows.append({"id": int(oid), "pixels": int(labels.numel()), "slot": slot, "share": share})
+    fg_slots = [r["slot"] for r in rows if r["slot"] != bg_slot]
+    for r in rows:
+        if r["slot"] == bg_slot:
+            r["kind"] = "lost"
+        elif fg_slots.count(r["slot"]) > 1:
+            r["kind"] = "merged"
+        else:
+            r["kind"] = "own"
+    return rows
+
+
+def summarize_failures(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Fractions and sizes of :func:`object_failures` rows (any number of views/scenes).
+
+    Returns ``objects``; per kind ("lost", "merged", "own"): ``fraction`` of the objects,
+    ``median_pixels``; ``own_share``: the mean pixel share of the "own" objects' slots
+    (NaN where a group is empty).
+    """
+    out: dict[str, Any] = {"objects": len(rows)}
+    for kind in ("lost", "merged", "own"):
+        px = [r["pixels"] for r in rows if r["kind"] == kind]
+        out[kind] = {
+            "fraction": len(px) / len(rows) if rows else math.nan,
+            "median_pixels": float(np.median(px)) if px else math.nan,
+        }
+    own = [r["share"] for r in rows if r["kind"] == "own"]
+    out["own_share"] = float(np.mean(own)) if own else math.nan
+    return out
+
+
+@torch.no_grad()
+def failure_breakdown(
+    model: SVORF, ds: MultiViewDataset, n_scenes: int | None = None, input_view: int = 0
+) -> dict[str, Any]:
+    """Where the input-view segmentation of held-out scenes goes wrong, per object.
+
+    Renders the input view of the first ``n_scenes`` scenes (None = all) and classifies
+    every object with :func:`object_failures`: lost to the background slot, merged with
+    another object into one foreground slot, or in a slot of its own. Also the mean absolute
+    reconstruction error (colour units) over each kind's pixels: an object lost to the
+    background but reconstructed was painted onto the background; one that is not, was not
+    rendered at all. Ground truth is read only here, never in training.
+
+    Returns:
+        :func:`summarize_failures` of all objects, plus ``rgb_abs_err`` per kind and
+        ``n_scenes``.
+    """
+    n = len(ds) if n_scenes is None else min(int(n_scenes), len(ds))
+    bg = model.cfg.num_slots - 1
+    rows: list[dict[str, Any]] = []
+    for i in range(n):
+        p = predict_scene(model, ds, i, input_view=input_view)
+        sv = ds[i]
+        if sv.instances is None:
+            raise ValueError(f"failure_breakdown: {ds.root} has no instance ids (truth=False)")
+        gt = sv.instances[input_view]
+        err = (p["rgb"][input_view] - sv.images[input_view].permute(1, 2, 0)).abs().mean(-1)
+        for r in object_failures(p["labels"][input_view], gt, bg):
+            r["err"] = float(err[gt == r["id"]].mean())
+            rows.append(r)
+    out = summarize_failures(rows)
+    out["rgb_abs_err"] = {
+        kind: (float(np.mean(e)) if e else math.nan)
+        for kind in ("lost", "merged", "own")
+        for e in [[r["err"] for r in rows if r["kind"] == kind]]
+    }
+    out["n_scenes"] = n
+    return out
+
+
 # --------------------------------------------------------------------------- figures
 
 
@@ -299,7 +405,8 @@ def train_eval(
     with torch.no_grad():
         final = make_eval_fn(seg_metrics, len(test))(model, test)
     final.update(step=info.step, wall_s=info.wall_s)
-    (out / "final_eval.json").write_text(json.dumps(final, indent=2, sort_keys=True))
+    final["failures"] = failure_breakdown(model, test)
+    atomic_write_json(out / "final_eval.json", final)
     save_segmentation_grid(model, test, out / "grid.png", grid_scenes)
     return {"summary": summary, "final": final, "grid": str(out / "grid.png")}
 
@@ -396,6 +503,14 @@ def main(argv: list[str] | None = None) -> int:
         help="any other ModelConfig field (VALUE as JSON, else a string), repeatable; "
         "e.g. --model-set slot_module=slot_attention",
     )
+    dg = sub.add_parser(
+        "diagnose",
+        help="per-object failure breakdown of a run on held-out scenes (lost / merged / own)",
+    )
+    dg.add_argument("run", help="a recipe or svorf run folder (checkpoint.pt)")
+    dg.add_argument("--test", required=True, help="held-out split with instance ids")
+    dg.add_argument("--scenes", type=int, default=None, help="default: all test scenes")
+    dg.add_argument("--threads", type=int, default=2)
     pl = sub.add_parser("plot", help="loss and held-out FG-ARI of runs over wall time (PNG)")
     pl.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     pl.add_argument("--out", required=True, help="PNG path")
@@ -408,6 +523,15 @@ def main(argv: list[str] | None = None) -> int:
         print(plot_runs(runs, a.out))
         return 0
     torch.set_num_threads(a.threads)
+    if a.cmd == "diagnose":
+        if not (Path(a.run) / "checkpoint.pt").is_file():
+            raise SystemExit(f"diagnose: no checkpoint.pt in {a.run} (not a run folder)")
+        model, info = load_run(Path(a.run))
+        test = MultiViewDataset(a.test, image_size=model.cfg.image_size, max_scenes=a.scenes)
+        res = {"step": info.step, **failure_breakdown(model, test)}
+        atomic_write_json(Path(a.run) / "failures.json", res)
+        print(json.dumps(res, indent=2))
+        return 0
     levers: dict[str, Any] = {}
     for name in ("ray_sampling", "nvs_warmup", "comp_temperature", "coord_frame"):
         if getattr(a, name) is not None:

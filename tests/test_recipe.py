@@ -208,3 +208,46 @@ def test_plot_subcommand_draws_runs_and_rejects_a_non_run(tmp_path):
     assert w > 600 and h > 200
     with pytest.raises(SystemExit, match="no log.jsonl"):
         main(["plot", str(tmp_path / "nope"), "--out", str(out)])
+
+
+def test_object_failures_classifies_lost_merged_and_own():
+    from svorf.recipe import object_failures, summarize_failures
+
+    gt = torch.tensor([[0, 1, 1, 2], [0, 3, 3, 4], [0, 0, 5, 5]])
+    # slot 3 = background; objects 1 and 2 share slot 0 (merged), 3 is in slot 1 (own),
+    # 4 goes to the background (lost), 5 is half slot 2, half background -> own (tie: lower id)
+    pred = torch.tensor([[3, 0, 0, 0], [3, 1, 1, 3], [3, 3, 2, 3]])
+    rows = object_failures(pred, gt, bg_slot=3)
+    assert [(r["id"], r["slot"], r["kind"]) for r in rows] == [
+        (1, 0, "merged"),
+        (2, 0, "merged"),
+        (3, 1, "own"),
+        (4, 3, "lost"),
+        (5, 2, "own"),
+    ]
+    assert rows[4]["share"] == 0.5 and rows[0]["pixels"] == 2
+    s = summarize_failures(rows)
+    assert s["objects"] == 5
+    assert s["lost"] == {"fraction": 0.2, "median_pixels": 1.0}
+    assert s["merged"]["fraction"] == 0.4 and s["own"]["fraction"] == 0.4
+    assert s["own_share"] == 0.75
+    with pytest.raises(ValueError, match="pred"):
+        object_failures(pred[:2], gt, 3)
+
+
+def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
+    from svorf.recipe import main
+
+    mcfg = model_config("smoke", num_slots=4)
+    tcfg = train_config("smoke", steps=10_000, eval_every=0, ckpt_every=100)
+    train_eval(split, split, tmp_path / "r", 0.0, mcfg, tcfg, grid_scenes=1)
+    final = json.loads((tmp_path / "r" / "final_eval.json").read_text())
+    f = final["failures"]
+    assert f["objects"] > 0 and f["n_scenes"] == 2
+    assert math.isclose(sum(f[k]["fraction"] for k in ("lost", "merged", "own")), 1.0)
+    assert main(["diagnose", str(tmp_path / "r"), "--test", str(split), "--threads", "1"]) == 0
+    saved = json.loads((tmp_path / "r" / "failures.json").read_text())
+    assert saved["objects"] == f["objects"] and saved["step"] == final["step"]
+    assert json.loads(capsys.readouterr().out)["objects"] == f["objects"]
+    with pytest.raises(SystemExit, match="no checkpoint"):
+        main(["diagnose", str(tmp_path), "--test", str(split)])
