@@ -223,6 +223,15 @@ class ModelConfig:
     them must be set), so it can only explain the floor and what lies outside, and the
     objects must be explained by foreground slots (with ``fg_zmin`` the two regions
     partition the scene). False = the background slot is a field like the others (paper)."""
+    bg_pos_freqs_xyz: int | None = None
+    """Background bandwidth (cpu recipe lever, hypernetwork only): the background slot's
+    field sees only the first ``bg_pos_freqs_xyz`` frequencies of gamma(x) (the generated
+    first-layer weights of the higher ones are zero for the last slot), so it can paint
+    only smooth colour and density: detail the size of a small object must come from a
+    foreground slot instead of being painted onto the floor. Measured on the cpu recipe
+    (``python -m svorf.recipe diagnose``): most failures are small objects left to the
+    background slot. A prior for plain CLEVR floors, not for textured rooms. None = the
+    background sees every frequency (paper)."""
     comp_temperature: float = 1.0
     """Temperature T of the slot-guided composition: m = softmax_k(logits / T). T < 1
     sharpens the soft masks (more decomposition pressure from the first steps). 1.0 = paper."""
@@ -333,6 +342,17 @@ class ModelConfig:
             raise ValueError("ModelConfig.box_half and fg_box must be > 0")
         if self.bg_outside_fg and self.fg_box is None and self.fg_zmin is None:
             raise ValueError("ModelConfig.bg_outside_fg needs fg_box or fg_zmin (the region)")
+        if self.bg_pos_freqs_xyz is not None:
+            if not 0 <= self.bg_pos_freqs_xyz < self.pos_freqs_xyz:
+                raise ValueError(
+                    f"ModelConfig.bg_pos_freqs_xyz must be in [0, pos_freqs_xyz="
+                    f"{self.pos_freqs_xyz}) or None, got {self.bg_pos_freqs_xyz}"
+                )
+            if not self.hypernetwork:
+                raise ValueError(
+                    "ModelConfig.bg_pos_freqs_xyz limits the background slot's generated "
+                    "weights: it needs hypernetwork=True"
+                )
         if not (self.comp_temperature > 0):
             raise ValueError(
                 f"ModelConfig.comp_temperature must be > 0, got {self.comp_temperature}"
@@ -385,10 +405,11 @@ class ModelConfig:
             )
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able dict (tuples become lists; the eval-only knobs only when set)."""
+        """Plain JSON-able dict (tuples become lists; :data:`_OMITTED_WHEN_NONE` fields only
+        when set)."""
         d = dataclasses.asdict(self)
         d["enc_blocks"] = list(self.enc_blocks)
-        for name in _EVAL_ONLY:  # off: not written, so keys of earlier runs stay valid
+        for name in _OMITTED_WHEN_NONE:  # off: not written, so keys of earlier runs stay valid
             if d[name] is None:
                 del d[name]
         return d
@@ -419,7 +440,9 @@ class ModelConfig:
 
 
 #: Fields read only at evaluation (no effect on training): left out of ``to_dict`` while off.
-_EVAL_ONLY = ("eval_early_stop", "eval_fine_min_weight")
+#: Fields added after runs were cached: written by ``to_dict`` only when set (not None), so
+#: a run that leaves them off keeps the key it had before they existed.
+_OMITTED_WHEN_NONE = ("eval_early_stop", "eval_fine_min_weight", "bg_pos_freqs_xyz")
 
 
 def _check_choice(name: str, value: object, literal: object) -> None:

@@ -74,6 +74,14 @@ def positional_encoding(x: Tensor, n_freqs: int, include_input: bool = True) -> 
     return torch.cat(parts, dim=-1)
 
 
+def pe_frequency_mask(n_freqs: int, keep_freqs: int, include_input: bool = True) -> Tensor:
+    """float32 [encoding_dim(n_freqs)]: 1 for the entries of :func:`positional_encoding`
+    with frequency index < ``keep_freqs`` (and the raw input), 0 for the higher ones."""
+    raw = torch.ones(3 * int(include_input))
+    band = (torch.arange(n_freqs) < keep_freqs).float().repeat_interleave(3)  # [L*3]
+    return torch.cat([raw, band, band])
+
+
 @dataclass
 class FieldParams:
     """Per-slot MLP parameters produced by the hypernetwork.
@@ -274,6 +282,17 @@ class HyperNetwork(ObjectFields):
         ]
         self.layout = layout
         self.n_params = sum(math.prod(s) for _, s, _, _ in layout)
+        # ModelConfig.bg_pos_freqs_xyz: 1 for the gamma(x) inputs the background slot's
+        # first layer may use, 0 for the higher frequencies (None: every input).
+        self.bg_inputs: Tensor | None
+        if cfg.bg_pos_freqs_xyz is None:
+            self.bg_inputs = None
+        else:
+            self.register_buffer(
+                "bg_inputs",
+                pe_frequency_mask(cfg.pos_freqs_xyz, cfg.bg_pos_freqs_xyz, cfg.pos_include_input),
+                persistent=False,
+            )
         self.head = nn.Linear(h_in, self.n_params)
         self._init(h_in)
 
@@ -307,6 +326,10 @@ class HyperNetwork(ObjectFields):
             n = math.prod(shape)
             out[name] = flat[..., start : start + n].reshape(B, K, *shape)
             start += n
+        if self.bg_inputs is not None:  # the background (last) slot: low frequencies only
+            keep = torch.ones(K, self.in_x, 1, dtype=flat.dtype, device=flat.device)
+            keep[-1, :, 0] = self.bg_inputs.to(flat.dtype)
+            out["w0"] = out["w0"] * keep
         hidden = [(out[f"w{i}"], out[f"b{i}"]) for i in range(self.n_hidden)]
         return FieldParams(hidden, out["head_w"], out["head_d"], out["head_b"])
 

@@ -23,6 +23,7 @@ bg outside objects  ``ModelConfig.bg_outside_fg``                False
 comp. temperature   ``ModelConfig.comp_temperature``             1.0
 slot locality       ``ModelConfig.slot_locality``                None
 centre source       ``ModelConfig.slot_centre`` ("anchored")     - (lever row)
+bg bandwidth        ``ModelConfig.bg_pos_freqs_xyz``             None (lever row)
 ==================  ===========================================  =========================
 
 ``ModelConfig.coord_frame="input_azimuth"`` (the networks see the input camera's azimuth

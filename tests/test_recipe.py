@@ -251,3 +251,47 @@ def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["objects"] == f["objects"]
     with pytest.raises(SystemExit, match="no checkpoint"):
         main(["diagnose", str(tmp_path), "--test", str(split)])
+
+
+def test_bg_pos_freqs_limits_only_the_background_slots_bandwidth():
+    from svorf.field import build_fields, pe_frequency_mask, positional_encoding
+
+    m = pe_frequency_mask(3, 1)
+    assert m.tolist() == [1.0] * 3 + [1, 1, 1, 0, 0, 0, 0, 0, 0] * 2  # raw, sin, cos
+    base_cfg = model_config("smoke", num_slots=4)  # pos_freqs_xyz = 3
+    cfg = base_cfg.replace(bg_pos_freqs_xyz=1)
+    torch.manual_seed(0)
+    full = build_fields(base_cfg)
+    low = build_fields(cfg)
+    low.load_state_dict(full.state_dict())
+    slots = torch.randn(2, 4, base_cfg.slot_dim)
+    x = torch.rand(2, 1, 50, 3) * 2 - 1
+    gx = positional_encoding(x, 3)
+    gd = positional_encoding(torch.nn.functional.normalize(torch.randn(2, 1, 50, 3), dim=-1), 1)
+    s_full, c_full = full.eval_fields(full.params(slots), gx, gd)
+    s_low, c_low = low.eval_fields(low.params(slots), gx, gd)
+    # foreground slots: bit-identical; background slot: changed
+    assert torch.equal(s_full[:, :3], s_low[:, :3]) and torch.equal(c_full[:, :3], c_low[:, :3])
+    assert not torch.allclose(s_full[:, 3], s_low[:, 3])
+    # the background field no longer depends on the high-frequency inputs at all
+    gx2 = gx.clone()
+    gx2[..., 6:12] = torch.randn_like(gx2[..., 6:12])  # sin of frequencies 1, 2
+    gx2[..., 15:] = torch.randn_like(gx2[..., 15:])  # cos of frequencies 1, 2
+    s2, c2 = low.eval_fields(low.params(slots), gx2, gd)
+    assert torch.equal(s2[:, 3], s_low[:, 3]) and torch.equal(c2[:, 3], c_low[:, 3])
+    assert not torch.equal(s2[:, 0], s_low[:, 0])
+    # validation, and run keys unchanged while off
+    with pytest.raises(ValueError, match="bg_pos_freqs_xyz"):
+        base_cfg.replace(bg_pos_freqs_xyz=3)
+    with pytest.raises(ValueError, match="hypernetwork"):
+        base_cfg.replace(bg_pos_freqs_xyz=1, hypernetwork=False)
+    assert "bg_pos_freqs_xyz" not in base_cfg.to_dict()
+    assert cfg.to_dict()["bg_pos_freqs_xyz"] == 1
+    assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+    # a whole model trains a step with it (gradients reach the hypernetwork)
+    model = SVORF(model_config("smoke", num_slots=4, bg_pos_freqs_xyz=1))
+    o = torch.tensor([[-6.0, 0.0, 1.0]]).expand(1, 8, 3).contiguous()
+    d = torch.nn.functional.normalize(torch.randn(1, 8, 3) + torch.tensor([1.0, 0, -0.1]), dim=-1)
+    out = model(torch.rand(1, 3, 32, 32), o, d)
+    out.rgb.sum().backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
