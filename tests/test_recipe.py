@@ -52,7 +52,9 @@ def test_paper_scale_has_the_levers_off():
         "bg_outside_fg": False,
         "nvs_warmup": 0,
         "slot_locality": None,
+        "slot_centre": "learned",
     }
+    assert mr.slot_centre == "anchored" and m.slot_centre == "learned"
     mr2, tr2 = recipe_configs(levers=off, lr=1e-3)
     assert mr2.fg_zmin is None and tr2.nvs_warmup == 0 and tr2.lr == 1e-3
     assert mr2 == model_config("cpu")
