@@ -238,7 +238,8 @@ def speed_chart(path: str | os.PathLike, rows: list[dict[str, Any]], scale: str)
 
 
 def _ratio_text(ratio: dict[str, Any], k: str) -> str:
-    """``k`` of a ratio row as "k 2.50x (paper 2.56x, target 3x)"."""
+    """``k`` of a ratio row as "k 2.504x (paper 2.56x, target 3x)" (3 decimals: a ratio just
+    below its target must not print as the target)."""
     v, paper, goal = ratio["metrics"].get(k), ratio.get("paper", {}), ratio.get("targets", {})
     extra = []
     if k in paper:
@@ -246,7 +247,7 @@ def _ratio_text(ratio: dict[str, Any], k: str) -> str:
     if k in goal:
         extra.append(f"target {goal[k]:g}x")
     tail = f" ({', '.join(extra)})" if extra else ""
-    return f"{k} " + ("null" if v is None else f"{v:.2f}x") + tail
+    return f"{k} " + ("null" if v is None else f"{v:.3f}x") + tail
 
 
 def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], scale: str) -> str:

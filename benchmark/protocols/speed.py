@@ -794,7 +794,7 @@ def _ratio_note(row: dict[str, Any]) -> str:
         goal = TARGET_RATIOS.get(k)
         if goal:
             tail += f", target >= {goal}x {'met' if met.get(k) else 'NOT met'}"
-        return f"{k} {v:.2f}x{tail}"
+        return f"{k} {v:.3f}x{tail}"
 
     head = f"sVORF vs uORF-style at batch {row.get('batch_scenes')} (same run, same batch "
     return head + "and resolution): " + "; ".join(show(k) for k in RATIO_KEYS)
