@@ -219,12 +219,20 @@ def make_eval_fn(
     return fn
 
 
-@torch.no_grad()
 def _labels_with_slots_of(
     model: SVORF, ds: MultiViewDataset, scene: int, other: int, input_view: int
 ) -> Tensor:
     """[H, W] arg-max slot labels of ``scene``'s input view rendered from the slots of scene
     ``other`` (encoded from its own input view) placed in ``scene``'s input-camera frame."""
+    return _render_input_view(model, ds, scene, other, input_view)[0]
+
+
+@torch.no_grad()
+def _render_input_view(
+    model: SVORF, ds: MultiViewDataset, scene: int, other: int, input_view: int
+) -> tuple[Tensor, Tensor]:
+    """(labels [H, W], rgb [H, W, 3]) of ``scene``'s input view alone, rendered from the
+    slots of scene ``other`` (``other == scene``: its own) in ``scene``'s input-camera frame."""
     device = next(model.parameters()).device
     was = model.training
     model.eval()
@@ -238,7 +246,7 @@ def _labels_with_slots_of(
         out = model.render_chunked(slots, o, d, 4096, input_c2w=c2w, **extra)
     finally:
         model.train(was)
-    return out.slot_probs[0].argmax(-1).view(h, w).cpu()
+    return out.slot_probs[0].argmax(-1).view(h, w).cpu(), out.rgb[0].view(h, w, 3).cpu()
 
 
 # --------------------------------------------------------------------------- failures
@@ -324,13 +332,13 @@ def failure_breakdown(
     bg = model.cfg.num_slots - 1
     rows: list[dict[str, Any]] = []
     for i in range(n):
-        p = predict_scene(model, ds, i, input_view=input_view)
         sv = ds[i]
         if sv.instances is None:
             raise ValueError(f"failure_breakdown: {ds.root} has no instance ids (truth=False)")
+        labels, rgb = _render_input_view(model, ds, i, i, input_view)  # that view only
         gt = sv.instances[input_view]
-        err = (p["rgb"][input_view] - sv.images[input_view].permute(1, 2, 0)).abs().mean(-1)
-        for r in object_failures(p["labels"][input_view], gt, bg):
+        err = (rgb - sv.images[input_view].permute(1, 2, 0)).abs().mean(-1)
+        for r in object_failures(labels, gt, bg):
             r["err"] = float(err[gt == r["id"]].mean())
             rows.append(r)
     out = summarize_failures(rows)
