@@ -207,6 +207,8 @@ class GenerateSummary:
         render_s: seconds inside Cycles' render calls, summed over workers.
         workers / threads: pool size and Cycles threads per worker.
         complete: every scene of the split (all shards) is complete.
+        nodes: machines that rendered scenes now (distinct Ray nodes with ``--backend
+            ray``; 1 for the local pool, 0 if nothing was rendered).
     """
 
     out: Path
@@ -225,6 +227,7 @@ class GenerateSummary:
     complete: bool
     n_views: int = 4
     failures: tuple[str, ...] = field(default=())
+    nodes: int = 1
 
     @property
     def views_written(self) -> int:
@@ -234,6 +237,9 @@ class GenerateSummary:
     def s_per_view(self) -> float:
         """Wall seconds per written view (0 if nothing was written)."""
         return self.wall_s / self.views_written if self.views_written else 0.0
+
+    def _on_nodes(self) -> str:
+        return f" on {self.nodes} Ray nodes" if self.nodes > 1 else ""
 
     def line(self) -> str:
         """One-line human summary."""
@@ -247,7 +253,8 @@ class GenerateSummary:
             f"{self.preset}/{self.split}: {self.scenes_this_run} scenes ({self.views_written} views) "
             f"made{conv}, {self.scenes_skipped} already complete, in {self.wall_s:.1f} s = "
             f"{self.s_per_view:.3f} s/view ({cyc}{self.workers} worker(s) x {self.threads} "
-            f"thread(s)) -> {self.out}" + ("" if self.complete else " [split not complete yet]")
+            f"thread(s){self._on_nodes()}) -> {self.out}"
+            + ("" if self.complete else " [split not complete yet]")
         )
 
 
@@ -442,6 +449,7 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
     threads = cfg.n_threads()
     render_s = 0.0
     n_conv = n_rend = 0
+    nodes: set[str] = set()
     try:
         if convert:
             from generators.writer import convert_scene_grayscale
@@ -465,6 +473,7 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
                 address=cfg.address, on_done=done,
             )  # fmt: skip
             render_s += sum(r["render_s"] for r in results)
+            nodes.update(str(r["node"]) for r in results)
             n_rend += len(results)
             workers, threads = used.workers, used.threads
             to_render = []  # rendered: the local pool below has nothing left to do
@@ -519,6 +528,7 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
         threads=threads,
         complete=complete,
         n_views=preset.camera.n_views,
+        nodes=len(nodes) or (1 if n_rend else 0),
     )
 
 

@@ -124,7 +124,12 @@ def _actor_class(ray: Any) -> Any:
         ) -> dict[str, float]:
             from generators.pipeline import render_one
 
-            return {**render_one(preset, split, index, seed, render, out), "pid": os.getpid()}
+            node = ray.get_runtime_context().get_node_id()
+            return {
+                **render_one(preset, split, index, seed, render, out),
+                "pid": os.getpid(),
+                "node": node,
+            }
 
         def retire(self) -> None:
             """Close the Blender session and end the process (worker recycling)."""
@@ -170,7 +175,8 @@ def render_scenes(
 
     Returns:
         ``(plan, results)``: the plan used and one ``render_one`` result per scene
-        (``index``, ``render_s``, ``scene_s``, ``pid``), in completion order.
+        (``index``, ``render_s``, ``scene_s``, ``pid``, and ``node``: the id of the Ray node
+        that rendered it), in completion order.
 
     Raises:
         RayMissingError: ray is not installed.

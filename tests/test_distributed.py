@@ -14,6 +14,7 @@ import socket
 import subprocess
 import sys
 from pathlib import Path
+from subprocess import PIPE
 
 import pytest
 import torch
@@ -43,19 +44,28 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _torchrun(split: Path, out: Path, steps: int, *extra: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    env.pop("WORLD_SIZE", None)
-    if Path("/sys/class/net/lo").exists():  # gloo on loopback, whatever the host name says
-        env.setdefault("GLOO_SOCKET_IFNAME", "lo")
-    cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc_per_node", "2",
-        "--master_addr", "127.0.0.1", "--master_port", str(_free_port()),
+def _torchrun_cmd(split: Path, out: Path, steps: int, launch: list[str], *extra: str) -> list[str]:
+    return [
+        sys.executable, "-m", "torch.distributed.run", *launch,
         "-m", "svorf.cli", "train", "--data", str(split), "--preset", "synthetic",
         "--scale", "smoke", "--out", str(out), "--steps", str(steps),
         "--image-size", str(IMAGE), "--device", "cpu", "--threads", "1", "--no-progress", *extra,
     ]  # fmt: skip
-    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, check=False)
+
+
+def _env() -> dict[str, str]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop("WORLD_SIZE", None)
+    if Path("/sys/class/net/lo").exists():  # gloo on loopback, whatever the host name says
+        env.setdefault("GLOO_SOCKET_IFNAME", "lo")
+    return env
+
+
+def _torchrun(split: Path, out: Path, steps: int, *extra: str) -> subprocess.CompletedProcess:
+    launch = ["--nnodes", "1", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
+              "--master_port", str(_free_port())]  # fmt: skip
+    cmd = _torchrun_cmd(split, out, steps, launch, *extra)
+    return subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300, check=False)
 
 
 @pytest.mark.timeout(400)
@@ -110,6 +120,45 @@ def test_two_cpu_ranks_match_one_process_and_resume(split, tmp_path):
     for ra, rb in zip(la, lb[1:], strict=True):
         assert rb["loss"] == pytest.approx(ra["loss"], rel=1e-5), (ra, rb)
         assert rb["parts"]["psnr"] == pytest.approx(ra["parts"]["psnr"], rel=1e-5)
+
+
+@pytest.mark.timeout(400)
+def test_two_launchers_as_two_nodes_train_what_one_node_of_two_ranks_trains(split, tmp_path):
+    """Two torchrun agents, ``--nnodes 2 --node_rank 0/1 --nproc_per_node 1``, as on two
+    machines (here both on 127.0.0.1): every rank has LOCAL_RANK 0, so this checks that
+    only global rank 0 writes, and that the run equals one node with 2 ranks."""
+    port = str(_free_port())
+    runs = {}
+    for name, nodes in (("one_node", 1), ("two_nodes", 2)):
+        out = tmp_path / name
+        if nodes == 1:
+            r = _torchrun(split, out, STEPS)
+            assert r.returncode == 0, r.stderr[-3000:]
+            runs[name] = (out, r.stdout)
+            continue
+        procs = []
+        for k in range(2):
+            launch = ["--nnodes", "2", "--node_rank", str(k), "--nproc_per_node", "1",
+                      "--master_addr", "127.0.0.1", "--master_port", port]  # fmt: skip
+            cmd = _torchrun_cmd(split, out, STEPS, launch)
+            procs.append(subprocess.Popen(cmd, env=_env(), stdout=PIPE, stderr=PIPE, text=True))
+        outs = [p.communicate(timeout=300) for p in procs]
+        for p, (_, err) in zip(procs, outs, strict=True):
+            assert p.returncode == 0, err[-3000:]
+        # The node-rank-1 agent's rank (global rank 1, local rank 0) stays silent.
+        assert outs[0][0].count("svorf train:") == 1 and "svorf train:" not in outs[1][0]
+        runs[name] = (out, outs[0][0])
+
+    (one, _), (two, _) = runs["one_node"], runs["two_nodes"]
+    s1, s2 = (json.loads((d / "summary.json").read_text()) for d in (one, two))
+    assert s1["world_size"] == s2["world_size"] == 2 and s1["steps"] == s2["steps"] == STEPS
+    a = torch.load(one / "checkpoint.pt", weights_only=True)
+    b = torch.load(two / "checkpoint.pt", weights_only=True)
+    # Same ranks, same rows, same gloo reduction over 2 ranks: the same numbers.
+    assert torch.equal(a["rng"]["data"], b["rng"]["data"])
+    for k, v in a["model"].items():
+        assert torch.equal(v, b["model"][k]), k
+    assert sorted(p.name for p in two.iterdir()) == sorted(p.name for p in one.iterdir())
 
 
 def test_global_batch_random_gives_each_rank_its_rows_of_the_single_process_draw():
