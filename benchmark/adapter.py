@@ -15,7 +15,9 @@ benchmark needs from svorf:
 - evaluation: :func:`open_dataset`, :func:`ground_truth`, :func:`predict_scene`
   (optionally with another scene's slots, ``slots_scene``, and only the input view);
 - data helpers: :func:`dataset_fingerprint`, :func:`write_synthetic_split`;
-- numerics: :func:`volume_render` (the ``stability`` protocol).
+- numerics (the ``stability`` protocol): :func:`volume_render`, :func:`slot_masks`,
+  :func:`compose`, :func:`compose_density_weighted`, :func:`connectivity_loss`, and
+  :func:`diverging_run` (a training run with a learning rate meant to blow up).
 
 Ablation variants (paper tables ``tab:ablation`` and ``tab:supp_ablation``; the
 packed-CLEVR-11 setting of ``tab:ab_num``) are ``ModelConfig`` field overrides in
@@ -42,15 +44,20 @@ __all__ = [
     "Prediction",
     "SceneTruth",
     "base_configs",
+    "compose",
+    "compose_density_weighted",
     "config_dict",
     "config_source",
+    "connectivity_loss",
     "dataset_fingerprint",
+    "diverging_run",
     "ground_truth",
     "load_model",
     "model_config",
     "num_slots",
     "open_dataset",
     "predict_scene",
+    "slot_masks",
     "svorf_preset",
     "train",
     "train_config",
@@ -423,3 +430,76 @@ def volume_render(
     from svorf.render import volume_render as vr
 
     return vr(sigma, rgb, t, last_delta=last_delta)
+
+
+def slot_masks(logits: torch.Tensor, valid: torch.Tensor | None) -> torch.Tensor:
+    """sVORF's slot masks m = masked softmax over the last (slot) axis, float32."""
+    from svorf.compose import masked_softmax
+
+    return masked_softmax(logits, valid, dim=-1)
+
+
+def compose(sigma_k: torch.Tensor, rgb_k: torch.Tensor, m: torch.Tensor):
+    """sVORF's composition: ``(sigma [B, P], rgb [B, P, 3])`` from [B, K, P] fields, m [B, P, K]."""
+    from svorf.compose import compose as c
+
+    return c(sigma_k, rgb_k, m)
+
+
+def compose_density_weighted(
+    sigma_k: torch.Tensor, rgb_k: torch.Tensor, valid: torch.Tensor | None = None
+):
+    """The uORF-style ablation: ``(sigma [B, P], rgb [B, P, 3], m [B, P, K])``."""
+    from svorf.compose import compose_density_weighted as c
+
+    return c(sigma_k, rgb_k, valid)
+
+
+def connectivity_loss(sigma_k, t, far_r, near: float, far: float, slot_mask=None):
+    """svorf's connectivity (per-slot distortion) loss, a float32 scalar."""
+    from svorf.losses import connectivity_loss as c
+
+    return c(sigma_k, t, far_r, near, far, slot_mask)
+
+
+def diverging_run(
+    workdir: str | os.PathLike, scale: str, lr: float, max_steps: int = 30, seed: int = 0
+) -> dict[str, Any]:
+    """Train the scale's model on a tiny synthetic split with learning rate ``lr`` and a
+    checkpoint every step, until svorf's NaN guard stops it (or ``max_steps``).
+
+    Returns:
+        ``diverged`` (the guard raised), ``diverged_at_step`` (the step it named),
+        ``message`` (its one line), ``checkpoint_step`` (the step of the checkpoint left
+        on disk), ``checkpoint_loads`` (``load_run`` reads it), ``nonfinite_params``
+        (NaN/Inf entries in its weights) and ``temp_files`` (leftover ``*.tmp*`` files).
+    """
+    import re
+
+    st = _svorf_train()
+    root = Path(workdir)
+    split = write_synthetic_split(root / "train", n_scenes=4, resolution=32, seed=seed)
+    mcfg, tcfg = st.run_configs(scale, "synthetic", image_size=32, device="cpu")
+    tcfg = dataclasses.replace(
+        tcfg, lr=float(lr), steps=int(max_steps), ckpt_every=1, seed=int(seed)
+    )
+    run = root / "run"
+    out: dict[str, Any] = {"diverged": False, "diverged_at_step": None, "message": None}
+    try:
+        st.train(split, run, mcfg, tcfg, progress=False)
+    except st.TrainingDiverged as e:
+        m = re.search(r"at step (\d+)", str(e))
+        out.update(diverged=True, message=str(e), diverged_at_step=int(m.group(1)) if m else None)
+    try:
+        model, info = st.load_run(run, device="cpu")
+        out["checkpoint_loads"] = True
+        out["checkpoint_step"] = int(info.step)
+        out["nonfinite_params"] = int(
+            sum((~torch.isfinite(p)).sum() for p in model.state_dict().values()
+                if p.is_floating_point())
+        )  # fmt: skip
+    except (st.CheckpointError, OSError, RuntimeError, ValueError) as e:  # a failed row
+        out.update(checkpoint_loads=False, checkpoint_step=None, nonfinite_params=None)
+        out["load_error"] = f"{type(e).__name__}: {e}"
+    out["temp_files"] = len([p for p in run.rglob("*") if ".tmp" in p.name])
+    return out

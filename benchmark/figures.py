@@ -311,36 +311,44 @@ def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], sca
 
 
 def stability_chart(path: str | os.PathLike, rows: list[dict[str, Any]]) -> str:
-    """Log-scale max errors per stress case (rgb, acc, relative depth); failures in red."""
+    """Log-scale largest error per stress case (the max over its ``max_*`` metrics: rgb,
+    acc, relative depth, slot masks, relative loss), coloured by table; failures in red."""
     plt = _plt()
     path = Path(path)
+    colors = {"stability": "#1f77b4", "stability_compose": "#2ca02c", "stability_loss": "#9467bd"}
     names = [r["model"] for r in rows]
-    fig, ax = plt.subplots(figsize=(11, 4.2))
+    fig, ax = plt.subplots(figsize=(max(11, 0.28 * len(rows)), 4.4))
     x = np.arange(len(rows))
-    for off, key, color in (
-        (-0.25, "max_abs_err_rgb", "#1f77b4"),
-        (0.0, "max_abs_err_acc", "#2ca02c"),
-        (0.25, "max_rel_err_depth", "#9467bd"),
-    ):
-        vals = [r["metrics"].get(key) for r in rows]
-        ax.bar(
-            x + off,
-            [max(v, 1e-12) if v is not None else np.nan for v in vals],
-            0.25,
-            label=key,
-            color=color,
-        )
+    vals = []
+    for r in rows:
+        errs = [
+            v for k, v in r["metrics"].items() if k.startswith("max_") and k != "max_abs_err_depth"
+        ]
+        vals.append(np.nan if any(v is None for v in errs) or not errs else max(errs))
+    ax.bar(
+        x,
+        [max(v, 1e-12) if np.isfinite(v) else np.nan for v in vals],
+        0.7,
+        color=[colors.get(r["table"], "#7f7f7f") for r in rows],
+    )
+    for t, c in colors.items():
+        if any(r["table"] == t for r in rows):
+            ax.bar([np.nan], [np.nan], color=c, label=t)
     for i, r in enumerate(rows):
         if not r.get("pass", True):
             ax.text(i, 1.5e-12, "FAIL", color="#d62728", ha="center", fontsize=7, rotation=90)
+        elif vals[i] == 0:
+            ax.text(i, 1.5e-12, "0", ha="center", va="bottom", fontsize=7)
     ax.axhline(1e-4, color="#d62728", ls="--", lw=1, label="tolerance 1e-4")
     ax.set_yscale("log")
     ax.set_ylim(1e-12, 1.0)
     ax.set_xticks(x)
-    ax.set_xticklabels(names, rotation=35, ha="right", fontsize=7)
+    ax.set_xticklabels(names, rotation=60, ha="right", fontsize=6)
     ax.legend(fontsize=7)
     ax.set_title(
-        "volume_render vs float64 reference (errors floored at 1e-12 for display)", fontsize=9
+        "largest error per stress case vs its float64 reference (rgb, acc, depth / max t, "
+        "slot masks, loss; floored at 1e-12 for display)",
+        fontsize=9,
     )
     _save(fig, path)
     return path.name

@@ -105,6 +105,14 @@ METRIC_UNITS: dict[str, str] = {
     "max_rel_err_depth": "unitless (relative to the largest sample distance)",
     "max_abs_err_acc": "unitless",
     "nonfinite_count": "count",
+    # stability: composition, losses, metrics and the NaN guard
+    "max_abs_err_m": "unitless [0,1] (slot masks, max |diff| from the float64 reference)",
+    "max_rel_err": "unitless (|value - float64 reference| / max(1, |reference|))",
+    "value": "the row's metric (ARI / FG-ARI in [-1, 1], PSNR in dB, SSIM unitless)",
+    "reference_value": "the same metric from sklearn / scikit-image",
+    "abs_err": "|value - reference_value|",
+    "diverged_at_step": "step (the step the NaN guard named)",
+    "checkpoint_step": "step (of the checkpoint left on disk)",
     "error": "unitless",
     "time_s": "s",
     # tradeoff: a speed knob's step time and render error against the knob-free model

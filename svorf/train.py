@@ -825,7 +825,7 @@ def train(
             gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf"))
             if not torch.isfinite(gnorm):
                 raise TrainingDiverged(
-                    f"non-finite gradient norm at step {done} (loss {float(loss):.6g}); "
+                    f"non-finite gradient norm at step {done} (loss {float(loss.detach()):.6g}); "
                     f"{_kept(saved)}"
                 )
             opt.step()

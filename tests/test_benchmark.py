@@ -460,14 +460,77 @@ def test_generator_bridge_fills_the_config_and_unknown_presets_become_null_rows(
 
 
 def test_stability_protocol_all_cases_pass(tmp_path):
+    from benchmark.protocols import stability_cases as sc
     from benchmark.protocols.stability import CASES, run_stability
 
     ctx = Context("stability", "smoke", tmp_path, tmp_path / "data", progress=False)
     report = json.loads(run_stability(ctx).read_text())
-    assert len(report["rows"]) == len(CASES)
+    tables = {}
+    for r in report["rows"]:
+        tables[r["table"]] = tables.get(r["table"], 0) + 1
+    assert tables == {
+        "stability": len(CASES),
+        "stability_compose": len(sc.COMPOSE_CASES),
+        "stability_loss": len(sc.LOSS_CASES),
+        "stability_metrics": len(sc.METRIC_CASES),
+        "stability_training": 1,
+    }
     bad = [(r["model"], r["metrics"]) for r in report["rows"] if not r["pass"]]
     assert not bad
-    assert all(r["metrics"]["nonfinite_count"] == 0 for r in report["rows"])
+    assert all(r["metrics"].get("nonfinite_count", 0) == 0 for r in report["rows"])
+    guard = next(r for r in report["rows"] if r["table"] == "stability_training")
+    assert guard["metrics"]["checkpoint_step"] == guard["metrics"]["diverged_at_step"] - 1
+    assert "keeps the last good state" in guard["guard_message"]
+    empty_fg = next(r for r in report["rows"] if "empty foreground" in r["model"])
+    assert empty_fg["metrics"]["value"] is None and empty_fg["metrics"]["reference_value"] == 1.0
+    assert "no foreground" in empty_fg["null_reasons"]["value"]
+    assert (tmp_path / "stability-smoke" / "stability.png").is_file()
+
+
+def test_stability_oracles_catch_a_finite_stand_in_for_masked_logits(monkeypatch):
+    """The code before 2026-11-24 filled masked logits with -1e4: rows whose valid logits
+    all lay below that gave every point's mass to masked slots (zeroed: m = 0)."""
+    import svorf.compose
+    from benchmark.protocols import stability_cases as sc
+
+    def finite_stand_in(logits, valid, dim=-1):
+        if valid is None:
+            return torch.softmax(logits.float(), dim=dim)
+        p = torch.softmax(logits.float().masked_fill(~valid, -1e4), dim=dim)
+        return p.masked_fill(~valid, 0.0)
+
+    monkeypatch.setattr(svorf.compose, "masked_softmax", finite_stand_in)
+    failed = {r["model"] for r in sc.compose_rows(0) if not r["pass"]}
+    assert "valid logits below -1e4, masked ones at 0" in failed
+    assert "moderate logits and densities" not in failed
+
+
+def test_stability_training_row_fails_when_the_guard_does_not_fire(monkeypatch):
+    from benchmark import adapter
+    from benchmark.protocols import stability_cases as sc
+
+    quiet = {"diverged": False, "diverged_at_step": None, "message": None,
+             "checkpoint_loads": True, "checkpoint_step": 30, "nonfinite_params": 0,
+             "temp_files": 0}  # fmt: skip
+    monkeypatch.setattr(adapter, "diverging_run", lambda *a, **k: quiet)
+    row = sc.training_row("smoke", 0)
+    assert row["pass"] is False and row["metrics"]["diverged_at_step"] is None
+    assert "did not fire" in row["null_reasons"]["diverged_at_step"]
+
+
+def test_stability_connectivity_oracle_closed_form():
+    from benchmark.protocols.stability_cases import reference_connectivity
+
+    # One slot, one ray, a single interval [0, 1] (near 0, far 1) of weight w: the
+    # distortion is w^2 / 3 (no pairs), w = 1 - exp(-sigma).
+    sigma = torch.tensor([[[[2.0]]]])
+    got = reference_connectivity(sigma, torch.zeros(1, 1, 1), torch.ones(1, 1), 0.0, 1.0, None)
+    w = 1 - math.exp(-2.0)
+    assert got == pytest.approx(w * w / 3)
+    mask = torch.zeros(1, 1, dtype=torch.bool)
+    assert (
+        reference_connectivity(sigma, torch.zeros(1, 1, 1), torch.ones(1, 1), 0.0, 1.0, mask) == 0.0
+    )
 
 
 def test_stability_reference_closed_form():
