@@ -364,6 +364,37 @@ def test_training_curve_from_a_run_log(tmp_path):
     assert tradeoff.training_curve(tmp_path, None) is None  # no log
 
 
+def test_training_curve_names_what_beats_a_budget_end_off_the_front(tmp_path):
+    """A run whose PSNR peaks before its budget ends: the last point is off the front, and
+    dominated_by names the first earlier point with at least its smoothed PSNR."""
+    run = tmp_path / "run"
+    run.mkdir()
+    psnr = [20.0 + i for i in range(20)] + [39.0 - 0.5 * i for i in range(1, 21)]
+    (run / "log.jsonl").write_text(
+        "\n".join(
+            json.dumps({"step": i + 1, "wall_s": float(i + 1), "loss": 0.01, "parts": {"psnr": p}})
+            for i, p in enumerate(psnr)
+        )
+    )
+    c = tradeoff.training_curve(run, None)
+    sd = c["shipped_default"]
+    assert sd["on_front"] is False and len(sd["dominated_by"]) == 1
+    sm = {p["id"]: p["train_psnr_smoothed"] for p in c["points"]}
+    beat = sd["dominated_by"][0]
+    assert sm[beat] >= sm[sd["id"]]
+    assert all(
+        sm[p["id"]] < sm[sd["id"]]
+        for p in c["points"][: [q["id"] for q in c["points"]].index(beat)]
+    )
+
+
+def test_cached_run_steps_are_the_steps_done_not_the_limit():
+    marker = {"key_source": {"train": {"steps": 1_000_000}}, "summary": {"steps": 16920}}
+    assert tradeoff._steps_done(marker) == 16920
+    assert tradeoff._steps_done({"key_source": {"train": {"steps": 500}}}) == 500
+    assert tradeoff._steps_done({}) == 0
+
+
 # ----------------------------------------------------------------------------- generator curve
 
 

@@ -310,10 +310,19 @@ def find_trained_run(ctx: Context) -> tuple[Path, dict[str, Any]] | None:
             or src.get("model") != want
         ):
             continue
-        rank = (int((src.get("train") or {}).get("steps") or 0), marker.stat().st_mtime)
+        rank = (_steps_done(m), marker.stat().st_mtime)
         if best is None or rank > best[0]:
             best = (rank, marker.parent, m)
     return None if best is None else (best[1], best[2])
+
+
+def _steps_done(marker: dict[str, Any]) -> int:
+    """Training steps a cached run did: its summary's ``steps``, else the configured steps
+    (a budgeted run's configured steps are only a limit)."""
+    done = (marker.get("summary") or {}).get("steps")
+    if isinstance(done, int):
+        return done
+    return int(((marker.get("key_source") or {}).get("train") or {}).get("steps") or 0)
 
 
 def weight_sets(ctx: Context, settings: TradeoffSettings) -> list[WeightSet]:
@@ -365,7 +374,11 @@ def weight_sets(ctx: Context, settings: TradeoffSettings) -> list[WeightSet]:
                 "its curves are left out."
             )
         else:
-            steps = (marker.get("key_source", {}).get("train") or {}).get("steps")
+            steps = _steps_done(marker)
+            wall = marker.get("train_wall_s")
+            trained_for = f"{steps} training steps" + (
+                f" in {float(wall) / 60:.1f} min" if isinstance(wall, (int, float)) else ""
+            )
             out.append(
                 WeightSet(
                     "trained",
@@ -374,8 +387,8 @@ def weight_sets(ctx: Context, settings: TradeoffSettings) -> list[WeightSet]:
                     {k: v.detach().clone() for k, v in model.state_dict().items()},
                     1.0,
                     (*every, "combined"),
-                    f"benchmark run {run_dir.name} (full model on clevr567, {steps} training "
-                    f"steps at scale {ctx.scale})",
+                    f"benchmark run {run_dir.name} (full model on clevr567, {trained_for} "
+                    f"at scale {ctx.scale})",
                     run_key=run_dir.name,
                     shipped=model.cfg,
                     run_dir=run_dir,
@@ -1010,6 +1023,16 @@ def training_curve(run_dir: Path, run_key: str | None = None) -> dict[str, Any] 
     while k > 0 and points[k - 1]["train_psnr_smoothed"] >= end - TRAIN_KNEE_DB:
         k -= 1
     knee = points[k]
+    last = points[-1]
+    # Off the front: an earlier point reached at least the last point's smoothed PSNR.
+    beaten_by = next(
+        (
+            pt["id"]
+            for pt in points[:-1]
+            if pt["train_psnr_smoothed"] >= last["train_psnr_smoothed"]
+        ),
+        None,
+    )
     held = []
     for r in _read_jsonl(run_dir / "eval.jsonl"):
         if not isinstance(r.get("wall_s"), (int, float)):
@@ -1035,7 +1058,7 @@ def training_curve(run_dir: Path, run_key: str | None = None) -> dict[str, Any] 
             "id": points[-1]["id"],
             "on_front": points[-1]["id"] in front,
             "is_knee": points[-1]["id"] == knee["id"],
-            "dominated_by": [],
+            "dominated_by": [] if last["id"] in front or beaten_by is None else [beaten_by],
         },
         "held_out": held,
         "note": (
