@@ -272,7 +272,7 @@ def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], sca
     ratios = [r for r in rows if r["table"] == "speed_vs_uorf" and r.get("variant") == "ratio"]
     labels = [r["model"].replace(" (", "\n(").replace(", batch", "\nbatch") for r in sel]
     colors = ["#1f77b4" if r.get("variant") == "full" else "#ff7f0e" for r in sel]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.0))
     ax = axes[0]
     vals = [r["metrics"].get("step_time_s") for r in sel]
     ax.bar(range(len(sel)), [np.nan if v is None else v for v in vals], color=colors)
@@ -299,7 +299,8 @@ def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], sca
     ax.set_title("memory (MiB): process peak / added by training / tensor peak", fontsize=9)
     for ax in axes:
         ax.set_xticks(range(len(sel)))
-        ax.set_xticklabels(labels, fontsize=7)
+        # Long configuration names: rotated so neighbouring labels do not overlap.
+        ax.set_xticklabels(labels, fontsize=6, rotation=30, ha="right")
     title = f"sVORF vs uORF-style configuration of the same code ({scale}, one run)"
     for ratio in ratios:
         title += f"\nbatch {ratio.get('batch_scenes')}: " + "; ".join(
