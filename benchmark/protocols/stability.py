@@ -29,11 +29,22 @@ from torch import Tensor
 from benchmark import adapter
 from benchmark.runner import Context
 
-__all__ = ["CASES", "reference_render", "run_stability"]
+__all__ = ["CASES", "reference_render", "reference_weights", "run_stability"]
 
 TOL_RGB = 1e-4
 TOL_ACC = 1e-4
 TOL_DEPTH_REL = 1e-4  # relative to the largest sample distance of the ray batch
+
+
+def reference_weights(sigma: Tensor, delta: Tensor) -> Tensor:
+    """Quadrature weights ``T_i (1 - exp(-sigma_i delta_i))`` in float64 along the last axis,
+    without clamping; an interval of length 0 contributes nothing whatever its density
+    (``0 * inf`` is taken as 0)."""
+    s = sigma.double().clamp_min(0.0)
+    delta = delta.double()
+    tau = torch.where(delta > 0, s * delta, torch.zeros_like(s))
+    excl = torch.cat([torch.zeros_like(tau[..., :1]), torch.cumsum(tau, -1)[..., :-1]], -1)
+    return torch.exp(-excl) * -torch.expm1(-tau)  # exp(-inf) = 0; tau = inf -> alpha 1
 
 
 def reference_render(sigma: Tensor, rgb: Tensor, t: Tensor, last_delta: float) -> dict[str, Tensor]:
@@ -52,16 +63,11 @@ def reference_render(sigma: Tensor, rgb: Tensor, t: Tensor, last_delta: float) -
     Returns:
         ``{"rgb" [R, 3], "depth" [R], "acc" [R], "weights" [R, N]}``, float64.
     """
-    s = sigma.double().clamp_min(0.0)
     t64 = t.double()
     delta = torch.cat(
         [t64[:, 1:] - t64[:, :-1], torch.full_like(t64[:, :1], float(last_delta))], 1
     ).clamp_min(0)
-    tau = torch.where(delta > 0, s * delta, torch.zeros_like(s))
-    excl = torch.cat([torch.zeros_like(tau[:, :1]), torch.cumsum(tau, 1)[:, :-1]], 1)
-    trans = torch.exp(-excl)  # exp(-inf) = 0
-    alpha = -torch.expm1(-tau)  # tau = inf -> 1
-    w = trans * alpha
+    w = reference_weights(sigma, delta)
     return {
         "rgb": (w[..., None] * rgb.double()).sum(1),
         "depth": (w * t64).sum(1),

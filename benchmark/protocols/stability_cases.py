@@ -35,6 +35,12 @@ from torch import Tensor
 
 from benchmark import adapter
 from benchmark.metrics import ari, fg_ari_score, psnr, ssim
+from benchmark.protocols.stability import (
+    _loguniform,
+    reference_render,
+    reference_weights,
+)
+from benchmark.protocols.stability import _nonfinite as _nonfinite_one
 
 __all__ = [
     "COMPOSE_CASES",
@@ -63,7 +69,7 @@ def _autocast(dtype: torch.dtype | None):
 
 
 def _nonfinite(*xs: Tensor | None) -> int:
-    return sum(0 if x is None else int((~torch.isfinite(x.float())).sum()) for x in xs)
+    return sum(_nonfinite_one(x) for x in xs)
 
 
 def _maxerr(a: Tensor, b: Tensor) -> float:
@@ -142,8 +148,8 @@ _P = _R * _N
 
 def _c_moderate(g):
     logits = 3.0 * torch.randn(_B, _P, _K, generator=g, dtype=torch.float64)
-    sig = torch.exp(math.log(1e-3) + math.log(1e5) * torch.rand(_B, _K, _P, generator=g))
-    return (logits, None, *_fields(g, sig.double()), _t(g))
+    sig = _loguniform(g, (_B, _K, _P), 1e-3, 1e2)
+    return (logits, None, *_fields(g, sig), _t(g))
 
 
 def _c_extreme(g):
@@ -194,8 +200,6 @@ COMPOSE_CASES: list[tuple[str, ComposeCase, torch.dtype | None]] = [
 
 def run_compose_case(build: ComposeCase, autocast: torch.dtype | None, seed: int) -> dict:
     """Masks, both compositions and the rendered rays against float64; metrics + pass."""
-    from benchmark.protocols.stability import reference_render
-
     g = torch.Generator().manual_seed(seed)
     logits64, valid, sig64, rgb64, t64 = build(g)
     logits = logits64.float().requires_grad_(True)
@@ -273,13 +277,10 @@ def reference_connectivity(
     normalised distances, mean over rays, mean over active slots."""
     from svorf.losses import distortion_loss_reference
 
-    s = sigma_k.double().clamp_min(0.0)
     edges = torch.cat([t.double(), far_r.double()[..., None]], -1)
     edges = torch.maximum(edges, torch.cummax(edges, -1).values)
     delta = (edges[..., 1:] - edges[..., :-1])[:, None]  # [B, 1, R, N]
-    tau = torch.where(delta > 0, s * delta, torch.zeros_like(s))
-    excl = torch.cat([torch.zeros_like(tau[..., :1]), torch.cumsum(tau, -1)[..., :-1]], -1)
-    w = torch.exp(-excl) * -torch.expm1(-tau)
+    w = reference_weights(sigma_k, delta.expand_as(sigma_k))
     sn = ((edges - near) / (far - near))[:, None].expand(*w.shape[:-1], w.shape[-1] + 1)
     per_slot = distortion_loss_reference(w, sn).mean(-1)  # [B, K]
     if slot_mask is None:
@@ -293,8 +294,8 @@ LossCase = Callable[[torch.Generator], tuple[Tensor, Tensor, Tensor, Tensor | No
 
 def _l_moderate(g):
     t = _t(g)
-    sig = torch.exp(math.log(1e-3) + math.log(1e5) * torch.rand(_B, _K, _R, _N, generator=g))
-    return sig.double(), t, torch.full((_B, _R), _FAR, dtype=torch.float64), None
+    sig = _loguniform(g, (_B, _K, _R, _N), 1e-3, 1e2)
+    return sig, t, torch.full((_B, _R), _FAR, dtype=torch.float64), None
 
 
 def _l_extreme(g):
@@ -304,9 +305,7 @@ def _l_extreme(g):
 
 
 def _l_spacings(g):
-    u = torch.rand(_B, _R, _N, generator=g, dtype=torch.float64)
-    delta = torch.exp(math.log(1e-8) + u * (math.log(1e3) - math.log(1e-8)))
-    t = _NEAR + torch.cumsum(delta, -1)
+    t = _NEAR + torch.cumsum(_loguniform(g, (_B, _R, _N), 1e-8, 1e3), -1)
     sig = _pick(g, [0.0, 1e-3, 1.0, 1e3, 1e8], (_B, _K, _R, _N))
     return sig, t, t[..., -1] + 1.0, torch.rand(_B, _K, generator=g) < 0.7
 
