@@ -100,6 +100,10 @@ METRIC_UNITS: dict[str, str] = {
     "s_per_view": "s (wall seconds per rendered view)",
     "overhead_ratio": "ratio (generate s/view / bare Cycles s/view, same views and settings)",
     "scaling_speedup": "ratio (first worker count's wall / this one's; > 1 = faster)",
+    "baseline_speedup": "ratio (straightforward bpy script's wall / generate's, same scenes; "
+    "> 1 = generate faster)",
+    "baseline_s_per_view": "s (the straightforward bpy script's wall seconds per view)",
+    "baseline_psnr": "dB (the straightforward bpy script's PSNR against the same reference)",
     "max_abs_err_rgb": "unitless",
     "max_abs_err_depth": "world units",
     "max_rel_err_depth": "unitless (relative to the largest sample distance)",

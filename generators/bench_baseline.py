@@ -7,8 +7,10 @@ three fresh subprocesses, each into its own split folder under ``out_root``:
 - ``generate/``: the ``generate`` command with the shipped defaults (timed, wall);
 - ``naive/``: :func:`naive_render_split`, the baseline script (timed, wall): one
   process, a factory reset before every scene, Cycles CPU on all threads at the same
-  samples with OpenImageDenoise, but Blender's default light paths (bounces, caustics,
-  adaptive sampling), written through the same ``writer.write_scene``;
+  samples with OpenImageDenoise switched on, and otherwise Blender's defaults: light
+  paths (bounces, caustics, adaptive sampling) and denoiser prefilter/quality
+  (``--baseline-denoiser tuned`` gives it ``generate``'s denoiser settings instead),
+  written through the same ``writer.write_scene``;
 - ``reference/``: the first ``psnr_scenes`` scenes at ``ref_samples``, no denoiser
   (the reference of ``bench_quality``);
 
@@ -57,18 +59,41 @@ LIGHT_PATH_FIELDS: dict[str, str | None] = {
     "use_adaptive_sampling": None,  # not a RenderSettings field (the JSON says False)
 }
 
+#: OpenImageDenoise fields a straightforward script leaves at their factory values (it
+#: only switches the denoiser on), and the RenderSettings field each one is recorded as.
+DENOISER_FIELDS: dict[str, str | None] = {
+    "denoising_input_passes": None,  # RGB_ALBEDO_NORMAL on both sides
+    "denoising_prefilter": "denoise_prefilter",
+    "denoising_quality": "denoise_quality",
+}
+
+#: ``--baseline-denoiser`` choices: ``factory`` = the script switches OIDN on and keeps
+#: Blender's defaults (prefilter ACCURATE, quality HIGH): issue 7's straightforward
+#: script; ``tuned`` = a stricter baseline that borrows ``generate``'s denoiser settings.
+BASELINE_DENOISERS = ("factory", "tuned")
+
 
 def _naive_session_class():
     """:class:`BlenderSession` subclass of the baseline (defined lazily: bpy stays out)."""
     from generators.blender_backend import BlenderSession, _quiet
 
     class NaiveSession(BlenderSession):
-        """Factory reset before every scene; Blender's default light paths."""
+        """Factory reset before every scene; Blender's default light paths (and, with
+        ``denoiser="factory"``, its default denoiser settings)."""
 
-        def __init__(self, threads: int = 1) -> None:
+        def __init__(self, threads: int = 1, denoiser: str = "factory") -> None:
+            if denoiser not in BASELINE_DENOISERS:
+                raise ValueError(
+                    f"denoiser (--baseline-denoiser) must be one of {BASELINE_DENOISERS}, "
+                    f"got {denoiser!r}"
+                )
             super().__init__(threads=threads)
+            self.fields = dict(LIGHT_PATH_FIELDS)
+            if denoiser == "factory":
+                self.fields.update(DENOISER_FIELDS)
             self.factory_resets = 0
             self.light_path: dict[str, Any] = {}
+            self.denoiser: dict[str, Any] = {}
             self.rna_defaults: dict[str, Any] = {}
 
         def build(self, spec: SceneSpec) -> None:
@@ -76,7 +101,7 @@ def _naive_session_class():
                 self.bpy.ops.wm.read_factory_settings(use_empty=True)
             self.factory_resets += 1
             c = self.bpy.context.scene.cycles
-            self._factory = {k: getattr(c, k) for k in LIGHT_PATH_FIELDS}
+            self._factory = {k: getattr(c, k) for k in self.fields}
             super().build(spec)
 
         def _configure(self, render: RenderSettings) -> None:
@@ -85,12 +110,14 @@ def _naive_session_class():
             for k, v in self._factory.items():
                 setattr(c, k, v)
             self.light_path = {k: getattr(c, k) for k in LIGHT_PATH_FIELDS}
+            self.denoiser = {k: getattr(c, k) for k in DENOISER_FIELDS}
             rna = type(c).bl_rna.properties  # recorded to show factory == RNA default
-            self.rna_defaults = {k: rna[k].default for k in LIGHT_PATH_FIELDS}
+            self.rna_defaults = {k: rna[k].default for k in self.fields}
 
         def rendered_settings(self, render: RenderSettings) -> RenderSettings:
-            """``render`` with the light-path values this session really used."""
-            kw = {f: self.light_path[k] for k, f in LIGHT_PATH_FIELDS.items() if f}
+            """``render`` with the light-path and denoiser values this session really used."""
+            used = {**self.light_path, **self.denoiser}
+            kw = {f: used[k] for k, f in {**LIGHT_PATH_FIELDS, **DENOISER_FIELDS}.items() if f}
             return replace(render, **kw)
 
     return NaiveSession
@@ -129,13 +156,15 @@ def naive_render_split(
     threads: int,
     *,
     preset: Preset | None = None,
+    denoiser: str = "factory",
 ) -> dict[str, Any]:
     """The straightforward bpy script: render and write ``specs`` in this process.
 
     For every scene: ``read_factory_settings(use_empty=True)``, build the scene
     (``BlenderSession.build``), Cycles CPU with ``threads`` threads at the spec's
     samples with OpenImageDenoise, light paths (bounces, caustics, adaptive sampling)
-    as the factory-reset scene has them; every view is written with
+    and (``denoiser="factory"``) the denoiser's prefilter and quality as the
+    factory-reset scene has them; every view is written with
     ``writer.write_scene`` (the same files as ``generate``; the JSON records the
     bounces really used).
 
@@ -144,22 +173,24 @@ def naive_render_split(
         out_dir: split folder to write.
         threads: Cycles threads (>= 1), all cores for the baseline.
         preset: if given, ``manifest.json`` is written too (as ``generate`` does).
+        denoiser: one of :data:`BASELINE_DENOISERS` (``factory``: Blender's defaults;
+            ``tuned``: the spec's own prefilter and quality).
 
     Returns:
         ``{"scenes", "views", "render_s" (Cycles seconds), "factory_resets",
-        "light_path" (Cycles field -> value rendered with), "rna_defaults" (the
-        same fields' RNA defaults)}``.
+        "light_path" / "denoiser" (Cycles field -> value rendered with),
+        "rna_defaults" (the factory-kept fields' RNA defaults)}``.
     """
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
-    sess = _naive_session_class()(threads=threads)
+    sess = _naive_session_class()(threads=threads, denoiser=denoiser)
     try:
         render_s = _render_split(sess, specs, out_dir, preset)
     finally:
         sess.close()
     return {"scenes": len(specs), "views": sum(s.n_views for s in specs), "render_s": render_s,
             "factory_resets": sess.factory_resets, "light_path": sess.light_path,
-            "rna_defaults": sess.rna_defaults}  # fmt: skip
+            "denoiser": sess.denoiser, "rna_defaults": sess.rna_defaults}  # fmt: skip
 
 
 def _specs(cfg: GenerateConfig) -> list[SceneSpec]:
@@ -205,6 +236,7 @@ def compare(
     samples: int = RenderSettings.samples,
     seed: int = 0,
     generate_samples: int | None = None,
+    baseline_denoiser: str = "factory",
 ) -> dict[str, Any]:
     """Time ``generate`` and the naive script on the same scenes; PSNR and exactness.
 
@@ -222,6 +254,9 @@ def compare(
         generate_samples: samples of the ``generate`` side only (default ``samples``): the
             equal-PSNR comparison, e.g. ``generate`` at 4 against the naive script at 8.
         seed: dataset seed.
+        baseline_denoiser: one of :data:`BASELINE_DENOISERS`: ``factory`` (default) is
+            the straightforward script, which switches OpenImageDenoise on and keeps
+            Blender's prefilter and quality; ``tuned`` gives it ``generate``'s.
 
     Returns:
         Plain-JSON dict: ``generate`` / ``naive`` (``wall_s``, ``s_per_view``,
@@ -239,6 +274,11 @@ def compare(
     if not 1 <= psnr_scenes <= n_scenes:
         raise ValueError(
             f"psnr_scenes (--psnr-scenes) must be in [1, n_scenes={n_scenes}], got {psnr_scenes}"
+        )
+    if baseline_denoiser not in BASELINE_DENOISERS:
+        raise ValueError(
+            f"baseline_denoiser (--baseline-denoiser) must be one of {BASELINE_DENOISERS}, "
+            f"got {baseline_denoiser!r}"
         )
     gen_samples = samples if generate_samples is None else generate_samples
     if gen_samples < 1:
@@ -265,6 +305,7 @@ def compare(
                    "--no-progress"]  # fmt: skip
         gen_wall = _run(gen_cmd + (["--workers", str(workers)] if workers else []))
         naive_wall = _run([*me, "--threads", str(threads), "--naive-only", str(dirs["naive"]),
+                           "--baseline-denoiser", baseline_denoiser,
                            "--stats", str(stats_path)])  # fmt: skip
         load_after = _load()  # the reference render is not part of the timing
         _run([*me, "--threads", str(threads), "--psnr-scenes", str(psnr_scenes),
@@ -288,6 +329,8 @@ def compare(
                          "threads": cfg.n_threads(),
                          "render": replace(cfg, samples=gen_samples).render_settings().to_json()},
             "naive": {"threads": threads, "light_path": naive_stats["light_path"],
+                      "baseline_denoiser": baseline_denoiser,
+                      "denoiser": naive_stats["denoiser"],
                       "rna_defaults": naive_stats["rna_defaults"],
                       "render": naive_stats["render"]},
             "reference": reference_settings(cfg.render_settings(), ref_samples).to_json(),
@@ -345,7 +388,8 @@ def _subprocess_role(a: argparse.Namespace, cfg: GenerateConfig) -> int:
     """``--naive-only`` / ``--reference-only``: the bpy side, run by :func:`compare`."""
     specs = _specs(cfg)
     if a.naive_only:
-        st = naive_render_split(specs, a.naive_only, a.threads, preset=cfg.preset_obj())
+        st = naive_render_split(specs, a.naive_only, a.threads, preset=cfg.preset_obj(),
+                                denoiser=a.baseline_denoiser)  # fmt: skip
         st["render"] = json.loads(Path(a.naive_only, "manifest.json").read_text())["render"]
         if a.stats:
             scenefmt.atomic_write_json(a.stats, st)
@@ -374,6 +418,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="samples of the generate side only (equal-PSNR comparison; "
                          "default --samples)")  # fmt: skip
     ap.add_argument("--seed", type=int, default=0, help="dataset seed")
+    ap.add_argument("--baseline-denoiser", choices=BASELINE_DENOISERS, default="factory",
+                    help="the script's OIDN prefilter/quality: Blender's defaults (factory, "
+                         "the straightforward script) or generate's (tuned); default factory")  # fmt: skip
     ap.add_argument("--ref-samples", type=int, default=512, help="reference samples (no denoiser)")
     ap.add_argument("--psnr-scenes", type=int, default=2, help="first scenes compared for PSNR")
     ap.add_argument("--threads", type=int, default=None,
@@ -395,7 +442,8 @@ def main(argv: list[str] | None = None) -> int:
             return _subprocess_role(a, cfg)
         r = compare(a.preset, a.n, a.resolution, a.ref_samples, a.threads, a.workers,
                     a.out_root, a.psnr_scenes, samples=a.samples, seed=a.seed,
-                    generate_samples=a.generate_samples)  # fmt: skip
+                    generate_samples=a.generate_samples,
+                    baseline_denoiser=a.baseline_denoiser)  # fmt: skip
     except (ValueError, RuntimeError, ImportError) as e:
         print(f"bench_baseline: error: {str(e).splitlines()[0]}", file=sys.stderr)
         return 2

@@ -32,8 +32,14 @@ def test_compare_tiny_side_by_side(tmp_path):
     # the baseline: a factory reset per scene, Blender's default light paths
     assert r["naive"]["factory_resets"] == 2
     lp = r["settings"]["naive"]["light_path"]
-    assert lp == r["settings"]["naive"]["rna_defaults"]
+    dn = r["settings"]["naive"]["denoiser"]
+    assert {**lp, **dn} == r["settings"]["naive"]["rna_defaults"]
+    # the straightforward script only switches OIDN on: Blender's prefilter and quality
+    assert r["settings"]["naive"]["baseline_denoiser"] == "factory"
+    assert (dn["denoising_prefilter"], dn["denoising_quality"]) == ("ACCURATE", "HIGH")
+    assert r["settings"]["naive"]["render"]["denoise_prefilter"] == "ACCURATE"
     d = RenderSettings()
+    assert d.denoise_prefilter != "ACCURATE"  # generate's own setting
     shipped = (d.max_bounces, d.glossy_bounces, d.transmission_bounces, d.transparent_bounces,
                d.caustics)  # fmt: skip
     naive_lp = (lp["max_bounces"], lp["glossy_bounces"], lp["transmission_bounces"],
@@ -50,11 +56,28 @@ def test_compare_tiny_side_by_side(tmp_path):
     assert len(r["load_before"]) == 3 and r["machine"]["cores"] >= 1
 
 
+@pytest.mark.blender
+@pytest.mark.skipif(not bpy_available(), reason="bpy not installed")
+@pytest.mark.timeout(120)
+def test_tuned_baseline_borrows_generates_denoiser(tmp_path):
+    r = bench_baseline.compare(
+        "clevr567", 1, 32, 4, None, None, tmp_path, 1, samples=1, baseline_denoiser="tuned"
+    )
+    d = RenderSettings()
+    naive = r["settings"]["naive"]
+    assert naive["baseline_denoiser"] == "tuned"
+    assert naive["denoiser"]["denoising_prefilter"] == d.denoise_prefilter
+    assert naive["denoiser"]["denoising_quality"] == d.denoise_quality
+    assert set(naive["rna_defaults"]) == set(naive["light_path"])  # only light paths kept
+    assert r["masks_identical"] and r["depth_identical"]
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [({"n_scenes": 0}, "n_scenes"), ({"psnr_scenes": 3, "n_scenes": 2}, "psnr_scenes"),
      ({"ref_samples": 0}, "ref_samples"), ({"threads": 0}, "threads"),
      ({"generate_samples": 0}, "generate_samples"),
+     ({"baseline_denoiser": "nope"}, "baseline_denoiser"),
      ({"resolution": 8}, "resolution"), ({"preset_name": "nope"}, "preset")],
 )  # fmt: skip
 def test_bad_arguments_raise_before_anything_runs(tmp_path, kwargs, match):

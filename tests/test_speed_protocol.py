@@ -170,6 +170,75 @@ def test_generator_rows_null_with_reason_without_generator(tmp_path):
     assert "switched off" in speed.generator_rows(ctx, off)[0]["null_reasons"]["s_per_view"]
 
 
+def _fake_compare(speedup: float, psnr: float, base_psnr: float, exact: bool = True):
+    """What ``bench_baseline.compare`` returns, with chosen numbers (the real run is
+    ``tests/test_bench_baseline.py``)."""
+
+    def compare(options, denoiser, out_root):
+        views = options.baseline_scenes * 4
+        dn = "ACCURATE" if denoiser == "factory" else "FAST"
+        return {
+            "generate": {"wall_s": 10.0, "s_per_view": 10.0 / views, "psnr_db": psnr},
+            "naive": {"wall_s": 10.0 * speedup, "s_per_view": 10.0 * speedup / views,
+                      "psnr_db": base_psnr},
+            "speedup": speedup, "masks_identical": exact, "depth_identical": True,
+            "load_before": [0.1, 0.2, 0.3], "load_after": [0.4, 0.5, 0.6],
+            "settings": {"split": "train", "n_scenes": options.baseline_scenes, "views": views,
+                         "resolution": options.baseline_resolution, "psnr_scenes": 1,
+                         "generate": {"render": {"samples": 8}},
+                         "naive": {"threads": 2, "denoiser": {"denoising_prefilter": dn,
+                                                              "denoising_quality": "HIGH"}},
+                         "reference": {"samples": 512}},
+        }  # fmt: skip
+
+    return compare
+
+
+@pytest.mark.parametrize(
+    ("speedup", "psnr", "base_psnr", "exact", "met"),
+    [(2.0, 45.0, 44.4, True, True), (1.4, 45.0, 44.4, True, False),
+     (2.0, 44.0, 44.4, True, False), (2.0, 45.0, 44.4, False, False)],
+)  # fmt: skip
+def test_baseline_rows_target_needs_speed_equal_psnr_and_exact_masks(
+    tmp_path, monkeypatch, speedup, psnr, base_psnr, exact, met
+):
+    ctx = Context("speed", "cpu", tmp_path / "r", tmp_path / "d", data_source="generator")
+    monkeypatch.setattr(speed, "_generator_unavailable", lambda ctx, options: None)
+    monkeypatch.setattr(
+        speed, "_compare_with_script", _fake_compare(speedup, psnr, base_psnr, exact)
+    )
+    opts = speed.default_options("cpu")
+    assert opts.baseline_denoisers == ("factory", "tuned") and opts.baseline_resolution == 128
+    rows = speed.baseline_rows(ctx, opts)
+    assert [r["variant"] for r in rows] == ["factory", "tuned"]
+    assert len({r["id"] for r in rows}) == 2
+    for r in rows:
+        assert r["table"] == "speed_generator" and r["n_cases"] == 80
+        assert r["metrics"]["baseline_speedup"] == speedup and r["target"] == 1.5
+        assert r["target_met"] is met
+        assert r["metrics"]["psnr"] == psnr and r["metrics"]["baseline_psnr"] == base_psnr
+    assert "ACCURATE" in rows[0]["note"] and "FAST" in rows[1]["note"]
+    note = speed._baseline_note(rows[0])
+    assert f"{speedup:.2f}x" in note and note.endswith("met")
+    assert ("NOT met" in note) is (not met)
+    rep = new_report("speed", "cpu", "cpu")
+    rep["rows"] = rows
+    assert [p for p in check_report(rep) if "rows" in p] == []
+
+
+def test_baseline_rows_null_with_reason_without_generator(tmp_path):
+    ctx = Context("speed", "smoke", tmp_path / "r", tmp_path / "d", data_source="synthetic")
+    rows = speed.baseline_rows(ctx, speed.default_options("smoke"))
+    assert [r["variant"] for r in rows] == ["factory"] and rows[0]["n_cases"] == 0
+    assert all(v is None for v in rows[0]["metrics"].values()) and rows[0]["target_met"] is None
+    assert "synthetic" in rows[0]["null_reasons"]["baseline_speedup"]
+    assert "null (" in speed._baseline_note(rows[0])
+    with pytest.raises(ValueError, match="baseline_denoisers"):
+        speed.SpeedOptions(baseline_denoisers=("nope",))
+    with pytest.raises(ValueError, match="baseline_psnr_scenes"):
+        speed.SpeedOptions(baseline_scenes=1, baseline_psnr_scenes=2)
+
+
 def test_new_speed_rows_pass_the_schema():
     for name in (
         "train_memory_mb",

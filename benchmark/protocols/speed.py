@@ -66,9 +66,11 @@ from benchmark.report import RowStore, stable_hash
 from benchmark.runner import Context, ModelJob, row_id
 
 __all__ = [
+    "GENERATOR_BASELINE_TARGET",
     "PAPER_RATIOS",
     "TARGET_RATIOS",
     "SpeedOptions",
+    "baseline_rows",
     "compare_training",
     "default_options",
     "generator_rows",
@@ -102,6 +104,10 @@ TARGET_RATIOS: dict[str, float] = {
     "tensor_memory_ratio": 5.0,
 }
 
+#: Issue 7: ``generate`` at least this much faster than a straightforward bpy script
+#: rendering the same scenes, at equal (or better) PSNR against a high-sample reference.
+GENERATOR_BASELINE_TARGET = 1.5
+
 SVORF_LABEL = "sVORF (small-ray training)"
 UORF_LABEL = "uORF-style (full image, density-weighted, slot-conditioned MLP)"
 RATIO_LABEL = "sVORF vs uORF-style"
@@ -128,6 +134,15 @@ class SpeedOptions:
             (``clevr567`` train scenes, pixels, Cycles samples per pixel).
         gen_workers: worker counts of the generator scaling rows (the first is the
             reference of ``scaling_speedup`` and of ``overhead_ratio``).
+        baseline_scenes, baseline_resolution, baseline_samples, baseline_ref_samples,
+            baseline_psnr_scenes: ``generate`` against the straightforward bpy script
+            (:func:`generators.bench_baseline.compare`): scenes each side renders,
+            pixels, Cycles samples of both sides (None = the shipped default), samples
+            of the no-denoiser reference, scenes compared with it.
+        baseline_denoisers: one comparison per entry of
+            :data:`generators.bench_baseline.BASELINE_DENOISERS` (``factory``: the
+            script keeps Blender's denoiser defaults; ``tuned``: it borrows
+            ``generate``'s); empty = no comparison.
     """
 
     compare_batches: tuple[int | None, ...] = (1, None)
@@ -141,9 +156,16 @@ class SpeedOptions:
     gen_resolution: int = 32
     gen_samples: int = 4
     gen_workers: tuple[int, ...] = (1, 2)
+    baseline_scenes: int = 20
+    baseline_resolution: int = 128
+    baseline_samples: int | None = None
+    baseline_ref_samples: int = 512
+    baseline_psnr_scenes: int = 2
+    baseline_denoisers: tuple[str, ...] = ("factory", "tuned")
 
     def __post_init__(self) -> None:
-        for name in ("compare_repeats", "render_repeats", "gen_scenes", "gen_resolution"):
+        for name in ("compare_repeats", "render_repeats", "gen_scenes", "gen_resolution",
+                     "baseline_scenes", "baseline_ref_samples", "baseline_psnr_scenes"):  # fmt: skip
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"SpeedOptions.{name} must be >= 1, got {getattr(self, name)}")
         if not self.compare_batches:
@@ -151,7 +173,7 @@ class SpeedOptions:
         for b in self.compare_batches:
             if b is not None and int(b) < 1:
                 raise ValueError(f"SpeedOptions.compare_batches must be >= 1 each, got {b}")
-        for name in ("compare_steps", "compare_warmup", "gen_samples"):
+        for name in ("compare_steps", "compare_warmup", "gen_samples", "baseline_samples"):
             v = getattr(self, name)
             if v is not None and int(v) < (0 if name == "compare_warmup" else 1):
                 raise ValueError(f"SpeedOptions.{name} must be a positive count, got {v}")
@@ -161,18 +183,32 @@ class SpeedOptions:
             )
         if not self.gen_workers or min(self.gen_workers) < 1:
             raise ValueError(f"SpeedOptions.gen_workers must be >= 1 each, got {self.gen_workers}")
+        if self.baseline_psnr_scenes > self.baseline_scenes:
+            raise ValueError(
+                f"SpeedOptions.baseline_psnr_scenes ({self.baseline_psnr_scenes}) must be <= "
+                f"baseline_scenes ({self.baseline_scenes})"
+            )
+        bad = [d for d in self.baseline_denoisers if d not in ("factory", "tuned")]
+        if bad:
+            raise ValueError(
+                f"SpeedOptions.baseline_denoisers: unknown {bad}; use 'factory' and/or 'tuned'"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["gen_workers"] = list(self.gen_workers)
         d["compare_batches"] = list(self.compare_batches)
+        d["baseline_denoisers"] = list(self.baseline_denoisers)
         return d
 
 
 def default_options(scale: str) -> SpeedOptions:
     """Per-scale defaults: smoke is quick (1 repeat, 2 generator scenes at 1 sample)."""
     if scale == "smoke":
-        return SpeedOptions(compare_repeats=1, render_repeats=1, gen_scenes=2, gen_samples=1)
+        return SpeedOptions(compare_repeats=1, render_repeats=1, gen_scenes=2, gen_samples=1,
+                            baseline_scenes=1, baseline_resolution=32, baseline_samples=1,
+                            baseline_ref_samples=16, baseline_psnr_scenes=1,
+                            baseline_denoisers=("factory",))  # fmt: skip
     if scale == "paper":
         return SpeedOptions(gen_scenes=16, gen_resolution=128, gen_samples=64)
     return SpeedOptions()
@@ -681,6 +717,90 @@ def generator_rows(ctx: Context, options: SpeedOptions) -> list[dict[str, Any]]:
     return rows
 
 
+#: Row labels of the straightforward-script comparisons, per ``baseline_denoisers`` entry.
+BASELINE_LABELS: dict[str, str] = {
+    "factory": "generate vs straightforward bpy script (Blender's default denoiser)",
+    "tuned": "generate vs straightforward bpy script (given generate's denoiser settings)",
+}
+
+
+def _compare_with_script(options: SpeedOptions, denoiser: str, out_root: Path) -> dict[str, Any]:
+    """:func:`generators.bench_baseline.compare` with the options' settings (a seam for tests)."""
+    from generators import bench_baseline
+    from generators.spec import RenderSettings
+
+    samples = options.baseline_samples or RenderSettings.samples
+    return bench_baseline.compare(
+        "clevr567", options.baseline_scenes, options.baseline_resolution,
+        options.baseline_ref_samples, None, None, out_root, options.baseline_psnr_scenes,
+        samples=samples, baseline_denoiser=denoiser,
+    )  # fmt: skip
+
+
+def baseline_rows(ctx: Context, options: SpeedOptions) -> list[dict[str, Any]]:
+    """``speed_generator`` rows: ``generate`` against the straightforward bpy script.
+
+    One row per ``options.baseline_denoisers`` entry, each from one
+    :func:`generators.bench_baseline.compare` run (both sides fresh processes, one after
+    the other, on the same scenes; PSNR of both against the same no-denoiser reference).
+    ``baseline_speedup`` = script wall / ``generate`` wall; ``target_met`` is true when it
+    reaches :data:`GENERATOR_BASELINE_TARGET` *and* ``generate``'s PSNR is at least the
+    script's (the target is at equal PSNR) *and* masks and depth are identical.
+    Without Blender: one row of nulls per entry, saying why.
+    """
+    why = _generator_unavailable(ctx, options)
+    keys = ("baseline_speedup", "s_per_view", "baseline_s_per_view", "psnr", "baseline_psnr")
+    rows = []
+    for denoiser in options.baseline_denoisers:
+        label = BASELINE_LABELS[denoiser]
+        if why is not None:
+            rows.append(_gen_row(label, dict.fromkeys(keys), why, n_cases=0, variant=denoiser,
+                                 target=GENERATOR_BASELINE_TARGET, target_met=None))  # fmt: skip
+            continue
+        r = _compare_with_script(options, denoiser, ctx.out / "speed-work" / f"baseline_{denoiser}")
+        g, n, st = r["generate"], r["naive"], r["settings"]
+        ctx.timers["data"] += g["wall_s"] + n["wall_s"]
+        exact = bool(r["masks_identical"] and r["depth_identical"])
+        metrics = {
+            "baseline_speedup": round(r["speedup"], 3),
+            "s_per_view": g["s_per_view"],
+            "baseline_s_per_view": n["s_per_view"],
+            "psnr": round(g["psnr_db"], 3),
+            "baseline_psnr": round(n["psnr_db"], 3),
+        }
+        met = bool(r["speedup"] >= GENERATOR_BASELINE_TARGET and g["psnr_db"] >= n["psnr_db"]
+                   and exact)  # fmt: skip
+        dn = st["naive"]["denoiser"]
+        rows.append(
+            _gen_row(
+                label,
+                metrics,
+                "",
+                n_cases=st["views"],
+                variant=denoiser,
+                target=GENERATOR_BASELINE_TARGET,
+                target_met=met,
+                masks_identical=r["masks_identical"],
+                depth_identical=r["depth_identical"],
+                wall_s={"generate": g["wall_s"], "baseline": n["wall_s"]},
+                load_before=r["load_before"],
+                load_after=r["load_after"],
+                settings=st,
+                note=(
+                    f"clevr567 {st['split']}, {st['n_scenes']} scenes x 4 views at "
+                    f"{st['resolution']}x{st['resolution']}, {st['generate']['render']['samples']} "
+                    f"samples both sides; script: one process on {st['naive']['threads']} "
+                    "thread(s), factory reset per scene, Blender's default light paths and "
+                    f"adaptive sampling, OIDN prefilter {dn['denoising_prefilter']} quality "
+                    f"{dn['denoising_quality']}; wall of each side's whole process; PSNR of "
+                    f"the first {st['psnr_scenes']} scene(s)' PNGs against a "
+                    f"{st['reference']['samples']}-sample render without denoiser"
+                ),
+            )
+        )
+    return rows
+
+
 # ---------------------------------------------------------------------------- protocol
 
 
@@ -749,6 +869,14 @@ def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
             for r in gen:
                 store.put(r)
     rows.extend(gen)
+    base_ids = _baseline_ids(options)
+    base = [r for r in (store.get(i) for i in base_ids) if r is not None]
+    if len(base) != len(base_ids):
+        base = baseline_rows(ctx, options)
+        for r in base:
+            if r["n_cases"]:
+                store.put(r)
+    rows.extend(base)
     report["rows"] = rows
     report["notes"] = [
         (
@@ -761,6 +889,7 @@ def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
             "size at the first training step. CUDA memory is torch.cuda.max_memory_allocated."
         ),
         *(_ratio_note(r) for r in cmp_rows if r["variant"] == "ratio"),
+        *(_baseline_note(r) for r in base),
         *ctx.settings.notes,
     ]
     from benchmark.figures import speed_chart, speed_compare_chart
@@ -780,6 +909,26 @@ def _gen_ids(options: SpeedOptions) -> list[str]:
     return ids + [
         row_id("speed_generator", "bare Cycles render (1 thread)", "clevr567", "measured")
     ]
+
+
+def _baseline_ids(options: SpeedOptions) -> list[str]:
+    return [
+        row_id("speed_generator", BASELINE_LABELS[d], "clevr567", "measured")
+        for d in options.baseline_denoisers
+    ]
+
+
+def _baseline_note(row: dict[str, Any]) -> str:
+    m = row["metrics"]
+    if m["baseline_speedup"] is None:
+        return f"{row['model']}: null ({row['null_reasons']['baseline_speedup']})"
+    verdict = "met" if row["target_met"] else "NOT met"
+    return (
+        f"{row['model']}: {m['baseline_speedup']:.2f}x faster ({m['s_per_view']:.3f} vs "
+        f"{m['baseline_s_per_view']:.3f} s/view) at {m['psnr']:.2f} vs {m['baseline_psnr']:.2f} "
+        f"dB; masks identical {row['masks_identical']}, depth identical "
+        f"{row['depth_identical']}; target >= {row['target']}x at equal PSNR {verdict}"
+    )
 
 
 def _ratio_note(row: dict[str, Any]) -> str:
