@@ -1286,6 +1286,16 @@ GENERATOR_CANDIDATES: list[tuple[str, dict[str, Any]]] = [
     ("64spp raw", {"samples": 64, "denoise": False}),
     ("8spp+oidn q=FAST", {"denoise_quality": "FAST"}),
     ("8spp+oidn q=HIGH", {"denoise_quality": "HIGH"}),
+    ("8spp+oidn prefilter NONE", {"denoise_prefilter": "NONE"}),
+    # Blender's own denoiser defaults (what a script that only switches OIDN on gets)
+    (
+        "8spp+oidn prefilter ACCURATE q=HIGH",
+        {"denoise_prefilter": "ACCURATE", "denoise_quality": "HIGH"},
+    ),
+    (
+        "4spp+oidn prefilter ACCURATE q=HIGH",
+        {"samples": 4, "denoise_prefilter": "ACCURATE", "denoise_quality": "HIGH"},
+    ),
     ("8spp+oidn 1 bounce", {"max_bounces": 1, "diffuse_bounces": 1}),
     ("8spp+oidn 2 bounces", {"max_bounces": 2, "diffuse_bounces": 2}),
     ("8spp+oidn 8 bounces", {"max_bounces": 8, "diffuse_bounces": 8}),
@@ -1295,7 +1305,7 @@ GENERATOR_CANDIDATES: list[tuple[str, dict[str, Any]]] = [
 def _generator_knob(overrides: dict[str, Any]) -> str:
     if not overrides:
         return "default"
-    if "denoise" in overrides or "denoise_quality" in overrides:
+    if {"denoise", "denoise_quality", "denoise_prefilter"} & set(overrides):
         return "denoiser"
     if "max_bounces" in overrides:
         return "bounces"
