@@ -180,8 +180,7 @@ def make_query_step(model: SVORF, batch):
     is_bg[:, -1] = True
 
     def step() -> None:
-        with model._autocast(slots.device):
-            params = model.fields.params(slots)
+        params = model.slot_params(slots)
         total = 0.0
         for t in ts:
             q = model._query(model.query_context(slots, params, o, d, None, is_bg), t)

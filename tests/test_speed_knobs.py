@@ -235,6 +235,40 @@ def test_fg_box_sparse_model_matches_dense_masked(composition, monkeypatch):
 # ----------------------------------------------------------------------------- bf16
 
 
+@pytest.mark.parametrize("hypernetwork", [True, False])
+def test_slot_params_float32_then_one_cast_under_bf16(hypernetwork):
+    """The hypernetwork runs in float32 and its output is cast once: no bf16 copy of its
+    [D, n_params] weight is made or kept for backward (2.7 MB per step at cpu scale)."""
+    torch.manual_seed(0)
+    cfg = model_config("cpu", bf16_autocast=True, hypernetwork=hypernetwork)
+    model = SVORF(cfg)
+    slots = torch.randn(2, cfg.num_slots, cfg.slot_dim)
+    head = model.fields.head.weight if hypernetwork else model.fields.lin_s.weight
+    saved: list[tuple[tuple[int, ...], torch.dtype]] = []
+
+    def pack(t):
+        saved.append((tuple(t.shape), t.dtype))
+        return t
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        p = model.slot_params(slots)
+    ref = model.fields.params(slots).to(torch.bfloat16)  # float32 matmul, then the cast
+    leaves = [p.slot_term] if not hypernetwork else [p.head_w, p.head_d, p.head_b]
+    refs = [ref.slot_term] if not hypernetwork else [ref.head_w, ref.head_d, ref.head_b]
+    if hypernetwork:
+        for (w, b), (rw, rb) in zip(p.hidden, ref.hidden, strict=True):
+            leaves += [w, b]
+            refs += [rw, rb]
+    for got, want in zip(leaves, refs, strict=True):
+        assert got.dtype == torch.bfloat16 and torch.equal(got, want)
+    assert (tuple(head.shape), torch.bfloat16) not in saved
+    assert (tuple(head.T.shape), torch.bfloat16) not in saved
+    # float32 models are untouched: the parameters stay float32
+    fp32 = SVORF(model_config("cpu", bf16_autocast=False, hypernetwork=hypernetwork))
+    q = fp32.slot_params(slots)
+    assert (q.head_b if hypernetwork else q.slot_term).dtype == torch.float32
+
+
 def test_bf16_within_tolerance_at_cpu_scale_and_float32_cumsums(monkeypatch):
     model, ref = model_pair("cpu", num_slots=8, bf16_autocast=True)
     imgs = make_images(2, 64)
