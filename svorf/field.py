@@ -243,6 +243,45 @@ class ObjectFields(nn.Module):
         raise NotImplementedError  # pragma: no cover
 
 
+class _RecastLinear(torch.autograd.Function):
+    """``x @ W.T + b`` in a low-precision ``dtype``, as autocast computes it, but keeping
+    the float32 ``W`` for the backward pass (cast again there) instead of its ``dtype``
+    copy. Same values and gradients as ``nn.Linear`` under autocast."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor, dtype: torch.dtype) -> Tensor:
+        xc = x.to(dtype)
+        ctx.save_for_backward(xc, weight)
+        ctx.dtype, ctx.x_dtype = dtype, x.dtype
+        with torch.autocast(x.device.type, enabled=False):
+            return F.linear(xc, weight.to(dtype), bias.to(dtype))
+
+    @staticmethod
+    def backward(ctx, gy: Tensor):
+        xc, weight = ctx.saved_tensors
+        gx = gw = gb = None
+        with torch.autocast(gy.device.type, enabled=False):
+            gy = gy.to(ctx.dtype)
+            g2 = gy.reshape(-1, gy.shape[-1])
+            if ctx.needs_input_grad[0]:
+                gx = (gy @ weight.to(ctx.dtype)).to(ctx.x_dtype)
+            if ctx.needs_input_grad[1]:
+                gw = (g2.t() @ xc.reshape(-1, xc.shape[-1])).to(weight.dtype)
+            if ctx.needs_input_grad[2]:
+                gb = g2.sum(0).to(weight.dtype)
+        return gx, gw, gb, None
+
+
+def _linear_autocast_recast(x: Tensor, lin: nn.Linear) -> Tensor:
+    """``lin(x)``; under autocast through :class:`_RecastLinear`. For the hypernetwork's
+    output layer: a [D, ~11k] weight applied to only B*K rows, whose bf16 copy (2.7 MB at
+    the cpu config) autocast would keep alive until the backward pass reaches it."""
+    dev = x.device.type
+    if not torch.is_autocast_enabled(dev) or lin.bias is None:
+        return lin(x)
+    return _RecastLinear.apply(x, lin.weight, lin.bias, torch.get_autocast_dtype(dev))
+
+
 def _autocast_input(x: Tensor) -> Tensor:
     """x in the autocast dtype when autocast is on for its device (what the next matmul would
     cast it to anyway), else x."""
@@ -332,7 +371,7 @@ class HyperNetwork(ObjectFields):
     def params(self, slots: Tensor) -> FieldParams:
         """slots [B, K, D] -> :class:`FieldParams` (one MLP per slot)."""
         B, K, _ = slots.shape
-        flat = self.head(self.trunk(self.norm(slots)))  # [B, K, n_params]
+        flat = _linear_autocast_recast(self.trunk(self.norm(slots)), self.head)  # [B, K, n]
         out: dict[str, Tensor] = {}
         start = 0
         for name, shape, _, _ in self.layout:

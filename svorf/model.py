@@ -390,18 +390,11 @@ class SVORF(nn.Module):
         return contextlib.nullcontext()
 
     def slot_params(self, slots: Tensor):
-        """Per-slot field parameters of ``slots`` [B, K, D] (the hypernetwork's output).
-
-        Computed in float32 even under ``bf16_autocast``, then cast to bfloat16 once: the
-        hypernetwork is a matmul of only B*K rows against a [D, ~11k] weight, so under
-        autocast the cast of that weight would cost more than the matmul saves, and its
-        bf16 copy would be kept for the backward pass (2.7 MB per step at the cpu config).
-        The per-point MLPs that use the parameters run in bfloat16 as before.
-        """
-        params = self.fields.params(slots)
-        if bf16_autocast_on(self.cfg.bf16_autocast, slots.device):
-            params = params.to(torch.bfloat16)
-        return params
+        """Per-slot field parameters of ``slots`` [B, K, D] (the hypernetwork's output),
+        under bf16 autocast where the config asks for it (the hypernetwork's output layer
+        then keeps only its float32 weight for backward: see ``field._RecastLinear``)."""
+        with self._autocast(slots.device):
+            return self.fields.params(slots)
 
     def _render(
         self, slots, rays_o, rays_d, slot_mask, is_bg, perturb, need_aux, transforms, frame,
