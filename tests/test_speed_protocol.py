@@ -242,6 +242,28 @@ def test_baseline_rows_null_with_reason_without_generator(tmp_path):
         speed.SpeedOptions(baseline_scenes=1, baseline_psnr_scenes=2)
 
 
+def test_code_fingerprint_follows_the_measured_sources(tmp_path, monkeypatch):
+    """Cached speed rows are keyed on the measured code: a change to it changes the key."""
+    import shutil
+    from pathlib import Path
+
+    fp = speed.code_fingerprint()
+    assert len(fp) == 16 and fp == speed.code_fingerprint()  # stable
+    orig = speed.code_fingerprint(("svorf",))
+    assert orig != speed.code_fingerprint(("generators",))
+    # the same sources elsewhere give the same fingerprint; one changed byte another
+    repo = Path(speed.__file__).resolve().parents[2]
+    fake = tmp_path / "benchmark" / "protocols"
+    fake.mkdir(parents=True)
+    shutil.copytree(repo / "svorf", tmp_path / "svorf")
+    shutil.copy(speed.__file__, fake / "speed.py")
+    monkeypatch.setattr(speed, "__file__", str(fake / "speed.py"))
+    assert speed.code_fingerprint(("svorf",)) == orig
+    f = tmp_path / "svorf" / "model.py"
+    f.write_text(f.read_text() + "\n# changed\n")
+    assert speed.code_fingerprint(("svorf",)) != orig
+
+
 def test_new_speed_rows_pass_the_schema():
     for name in (
         "train_memory_mb",

@@ -51,6 +51,7 @@ Tables (rows):
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib.util
 import json
 import os
@@ -839,6 +840,7 @@ def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
             "speed_options": {
                 k: v for k, v in options.to_dict().items() if not k.startswith("baseline_")
             },
+            "code": code_fingerprint(),
         },
     )
     base_store = RowStore(
@@ -849,6 +851,7 @@ def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
             "baseline_options": {
                 k: v for k, v in options.to_dict().items() if k.startswith("baseline_")
             },
+            "code": code_fingerprint(("generators",)),
         },
     )
     rows = paper_rows("tab:time")
@@ -930,6 +933,25 @@ def _gen_ids(options: SpeedOptions) -> list[str]:
     return ids + [
         row_id("speed_generator", "bare Cycles render (1 thread)", "clevr567", "measured")
     ]
+
+
+#: Source whose change makes cached speed rows stale: the model, the generator and the
+#: worker that measures them (repository-relative; folders mean their ``*.py`` files).
+MEASURED_CODE: tuple[str, ...] = ("svorf", "generators", "benchmark/protocols/_speed_worker.py")
+
+
+def code_fingerprint(paths: tuple[str, ...] = MEASURED_CODE) -> str:
+    """sha256 (16 hex) of the named source files, so that a cached timing or memory row
+    is measured again after the code it measured has changed (not after docs or tests)."""
+    root = Path(__file__).resolve().parents[2]
+    h = hashlib.sha256()
+    for rel in paths:
+        p = root / rel
+        files = sorted(p.rglob("*.py")) if p.is_dir() else [p] if p.is_file() else []
+        for f in files:
+            h.update(f.relative_to(root).as_posix().encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def _baseline_ids(options: SpeedOptions) -> list[str]:
