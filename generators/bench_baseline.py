@@ -73,6 +73,15 @@ DENOISER_FIELDS: dict[str, str | None] = {
 BASELINE_DENOISERS = ("factory", "tuned")
 
 
+def check_baseline_denoiser(denoiser: str) -> None:
+    """ValueError naming ``--baseline-denoiser`` unless ``denoiser`` is a known choice."""
+    if denoiser not in BASELINE_DENOISERS:
+        raise ValueError(
+            f"baseline_denoiser (--baseline-denoiser) must be one of {BASELINE_DENOISERS}, "
+            f"got {denoiser!r}"
+        )
+
+
 def _naive_session_class():
     """:class:`BlenderSession` subclass of the baseline (defined lazily: bpy stays out)."""
     from generators.blender_backend import BlenderSession, _quiet
@@ -82,11 +91,7 @@ def _naive_session_class():
         ``denoiser="factory"``, its default denoiser settings)."""
 
         def __init__(self, threads: int = 1, denoiser: str = "factory") -> None:
-            if denoiser not in BASELINE_DENOISERS:
-                raise ValueError(
-                    f"denoiser (--baseline-denoiser) must be one of {BASELINE_DENOISERS}, "
-                    f"got {denoiser!r}"
-                )
+            check_baseline_denoiser(denoiser)
             super().__init__(threads=threads)
             self.fields = dict(LIGHT_PATH_FIELDS)
             if denoiser == "factory":
@@ -275,11 +280,7 @@ def compare(
         raise ValueError(
             f"psnr_scenes (--psnr-scenes) must be in [1, n_scenes={n_scenes}], got {psnr_scenes}"
         )
-    if baseline_denoiser not in BASELINE_DENOISERS:
-        raise ValueError(
-            f"baseline_denoiser (--baseline-denoiser) must be one of {BASELINE_DENOISERS}, "
-            f"got {baseline_denoiser!r}"
-        )
+    check_baseline_denoiser(baseline_denoiser)
     gen_samples = samples if generate_samples is None else generate_samples
     if gen_samples < 1:
         raise ValueError(f"generate_samples (--generate-samples) must be >= 1, got {gen_samples}")

@@ -107,15 +107,6 @@ class FieldParams:
             self.head_b[:, index],
         )
 
-    def to(self, dtype: torch.dtype) -> FieldParams:
-        """The same parameters in ``dtype``."""
-        return FieldParams(
-            [(w.to(dtype), b.to(dtype)) for w, b in self.hidden],
-            self.head_w.to(dtype),
-            self.head_d.to(dtype),
-            self.head_b.to(dtype),
-        )
-
     @property
     def num_slots(self) -> int:
         return self.head_b.shape[1]
@@ -129,10 +120,6 @@ class CondParams:
 
     def select(self, index: slice) -> CondParams:
         return CondParams(self.slot_term[:, index])
-
-    def to(self, dtype: torch.dtype) -> CondParams:
-        """The same conditioning in ``dtype``."""
-        return CondParams(self.slot_term.to(dtype))
 
     @property
     def num_slots(self) -> int:

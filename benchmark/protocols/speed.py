@@ -189,10 +189,12 @@ class SpeedOptions:
                 f"SpeedOptions.baseline_psnr_scenes ({self.baseline_psnr_scenes}) must be <= "
                 f"baseline_scenes ({self.baseline_scenes})"
             )
-        bad = [d for d in self.baseline_denoisers if d not in ("factory", "tuned")]
+        from generators.bench_baseline import BASELINE_DENOISERS  # no bpy import
+
+        bad = [d for d in self.baseline_denoisers if d not in BASELINE_DENOISERS]
         if bad:
             raise ValueError(
-                f"SpeedOptions.baseline_denoisers: unknown {bad}; use 'factory' and/or 'tuned'"
+                f"SpeedOptions.baseline_denoisers: unknown {bad}; use any of {BASELINE_DENOISERS}"
             )
 
     def to_dict(self) -> dict[str, Any]:
