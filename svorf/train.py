@@ -91,6 +91,10 @@ class TrainingDiverged(RuntimeError):
 # --------------------------------------------------------------------------- configs
 
 
+#: Learning-rate schedules after warm-up (``TrainConfig.lr_decay``).
+LR_DECAYS = ("none", "cosine")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimisation and bookkeeping settings of one training run (saved as JSON)."""
@@ -107,6 +111,14 @@ class TrainConfig:
     """Adam betas. Paper: (0.9, 0.999)."""
     warmup: int = 1000
     """Linear learning-rate warm-up steps (lr * step / warmup). Paper: 1,000."""
+    lr_decay: str = "none"
+    """Learning rate after warm-up: "none" (constant, paper) or "cosine" (cpu recipe): a
+    half cosine from ``lr`` down to ``lr * lr_final_ratio`` over the run. The run's
+    progress is the larger of ``step / steps`` and, in a time-budgeted run
+    (``train(max_wall_s=...)``), its training wall time over the budget, so a budgeted
+    run reaches the low rate when its time runs out whatever its speed."""
+    lr_final_ratio: float = 0.05
+    """Final learning rate over ``lr`` of ``lr_decay="cosine"``."""
     seed: int = 0
     """Seeds parameter init, data sampling and the model's own randomness."""
     ray_sampling: str = "uniform"
@@ -144,6 +156,14 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.warmup < 0 or self.eval_every < 0 or self.nvs_warmup < 0:
             raise ValueError("TrainConfig.warmup, eval_every and nvs_warmup must be >= 0")
+        if self.lr_decay not in LR_DECAYS:
+            raise ValueError(
+                f"TrainConfig.lr_decay must be one of {list(LR_DECAYS)}, got {self.lr_decay!r}"
+            )
+        if not 0.0 <= self.lr_final_ratio <= 1.0:
+            raise ValueError(
+                f"TrainConfig.lr_final_ratio must be in [0, 1], got {self.lr_final_ratio}"
+            )
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
@@ -282,10 +302,20 @@ def resolve_device(name: str = "auto") -> torch.device:
     return dev
 
 
-def lr_at(cfg: TrainConfig, step: int) -> float:
-    """Learning rate of optimizer step ``step`` (0-based): linear warm-up, then constant."""
+def lr_at(cfg: TrainConfig, step: int, progress: float | None = None) -> float:
+    """Learning rate of optimizer step ``step`` (0-based): linear warm-up, then constant
+    (``lr_decay="none"``) or a half cosine to ``lr * lr_final_ratio`` (``"cosine"``).
+
+    ``progress`` in [0, 1] is how far the run is (default ``step / steps``; a time-budgeted
+    run passes the larger of that and its wall-time fraction).
+    """
     if cfg.warmup and step < cfg.warmup:
         return cfg.lr * (step + 1) / cfg.warmup
+    if cfg.lr_decay == "cosine":
+        p = step / cfg.steps if progress is None else progress
+        p = min(max(float(p), 0.0), 1.0)
+        r = cfg.lr_final_ratio
+        return cfg.lr * (r + (1.0 - r) * 0.5 * (1.0 + math.cos(math.pi * p)))
     return cfg.lr
 
 
@@ -667,7 +697,7 @@ def train(
             raise CheckpointError(
                 f"{ckpt_path}: resume with a different model config (fields {diff})"
             )
-        old = ckpt["train_config"]
+        old = TrainConfig.from_dict(dict(ckpt["train_config"])).to_dict()  # new fields: defaults
         diff = sorted(
             k
             for k, v in train_cfg.to_dict().items()
@@ -781,7 +811,11 @@ def train(
     )
     try:
         for step in range(start, train_cfg.steps):
-            lr = lr_at(train_cfg, step)
+            progress = step / train_cfg.steps
+            if max_wall_s is not None:
+                now_wall = wall_offset + time.perf_counter() - t0 - paused
+                progress = max(progress, now_wall / max_wall_s)
+            lr = lr_at(train_cfg, step, progress)
             for group in opt.param_groups:
                 group["lr"] = lr
             smp = sampler_warm if step < train_cfg.nvs_warmup else sampler
