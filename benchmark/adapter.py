@@ -37,7 +37,6 @@ import torch
 
 __all__ = [
     "ADAPTER_VERSION",
-    "CPU_RECIPE_PRESETS",
     "RECIPE_CONFIG_SOURCE",
     "VARIANTS",
     "VARIANT_LABELS",
@@ -61,6 +60,7 @@ __all__ = [
     "svorf_preset",
     "train",
     "train_config",
+    "variant_adjustments",
     "volume_render",
     "write_synthetic_split",
 ]
@@ -130,48 +130,30 @@ def num_slots(train_preset: str, variant: str = "full") -> int:
     return int(presets[key].num_slots)
 
 
-#: svorf training presets whose ``cpu``-scale models train with the cpu recipe
-#: (``svorf.recipe.recipe_configs``, docs/cpu_recipe.md) instead of svorf's plain cpu
-#: scale (``svorf.train.run_configs("cpu", preset)``). The Room presets keep the plain
-#: cpu scale (the recipe's locality box and floor prior are CLEVR-specific). ``smoke``
-#: and ``paper`` never use the recipe. clevr567-gray is a test set only: its rows score
-#: the clevr567 model.
-CPU_RECIPE_PRESETS: tuple[str, ...] = ("clevr567", "clevr567-heldout", "packed-clevr11")
-
-RECIPE_CONFIG_SOURCE = "svorf.recipe.recipe_configs"
+RECIPE_CONFIG_SOURCE = "svorf.train.run_configs (cpu recipe)"
 SCALE_CONFIG_SOURCE = "svorf.train.run_configs"
 
 
 def config_source(scale: str, train_preset: str, variant: str = "full") -> str:
-    """Which svorf function gives the base configs of a model (see :func:`base_configs`)."""
+    """Which svorf configs a model gets (see :func:`base_configs`): the scale's, with the
+    cpu recipe where ``svorf.train.recipe_applies``."""
     key = svorf_preset(train_preset, variant)
-    return (
-        RECIPE_CONFIG_SOURCE
-        if scale == "cpu" and key in CPU_RECIPE_PRESETS
-        else SCALE_CONFIG_SOURCE
-    )
+    if _svorf_train().recipe_applies(scale, key):
+        return RECIPE_CONFIG_SOURCE
+    return SCALE_CONFIG_SOURCE
 
 
 def base_configs(
     scale: str, train_preset: str, variant: str = "full", image_size: int | None = None
 ) -> tuple[Any, Any]:
-    """svorf's (ModelConfig, TrainConfig) for a benchmark model, before ablation overrides.
-
-    The one place that decides where the configs come from: the cpu recipe
-    (``svorf.recipe.recipe_configs(preset)``) for ``--scale cpu`` on
-    :data:`CPU_RECIPE_PRESETS`, else ``svorf.train.run_configs(scale, preset)``.
+    """svorf's (ModelConfig, TrainConfig) for a benchmark model, before ablation overrides:
+    ``svorf.train.run_configs(scale, preset)``, the same configs ``svorf train --scale S
+    --preset P`` uses (the cpu recipe at ``cpu`` for the CLEVR-567 family).
 
     Raises:
         ValueError: on an unknown scale or preset (svorf's message).
     """
     key = svorf_preset(train_preset, variant)
-    if config_source(scale, train_preset, variant) == RECIPE_CONFIG_SOURCE:
-        from svorf.recipe import recipe_configs
-
-        mcfg, tcfg = recipe_configs(key)
-        if image_size is not None:
-            mcfg = dataclasses.replace(mcfg, image_size=int(image_size))
-        return mcfg, tcfg
     return _svorf_train().run_configs(scale, key, image_size=image_size)
 
 
@@ -195,7 +177,29 @@ def model_config(
         raise ValueError(f"unknown model variant {variant!r}; known: {sorted(VARIANTS)}")
     mcfg, _ = base_configs(scale, train_preset, variant, image_size=image_size)
     overrides = dict(VARIANTS[variant])
+    overrides.update(variant_adjustments(mcfg, variant)[0])
     return dataclasses.replace(mcfg, **overrides) if overrides else mcfg
+
+
+def variant_adjustments(base_cfg: Any, variant: str) -> tuple[dict[str, Any], list[str]]:
+    """Fields of the base config that an ablation variant cannot keep, and why.
+
+    The cpu recipe's slot-centred locality multiplies each slot's *density* by an envelope
+    around the slot's centre; Slot-Mixer composition has no per-slot density to localise, so
+    its row drops ``slot_locality`` (and the centres it needs). Returns ``(field overrides,
+    notes)``; both empty when the variant combines with the base config as it is.
+    """
+    changes: dict[str, Any] = {}
+    notes: list[str] = []
+    comp = VARIANTS.get(variant, {}).get("composition")
+    if comp == "slot_mixer" and getattr(base_cfg, "slot_locality", None) is not None:
+        changes.update(slot_locality=None, slot_centre="learned")
+        notes.append(
+            f"{variant}: Slot-Mixer composition has no per-slot density to localise, so the "
+            f"base config's slot_locality={base_cfg.slot_locality} and "
+            f"slot_centre={base_cfg.slot_centre!r} are off for this model (slot_locality=None)."
+        )
+    return changes, notes
 
 
 def train_config(

@@ -162,6 +162,11 @@ def _run(args: argparse.Namespace) -> int:
         )
     print(f"report: {path}")
     print(f"page:   {Path(path).parent / 'index.html'}")
+    failed = [r for r in report["rows"] if r.get("failed")]
+    if failed:
+        for r in failed:
+            print(f"  FAILED row {r['table']} / {r['model']} / {r['dataset']}: {r['failed']}")
+        return 1
     return 0
 
 

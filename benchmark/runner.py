@@ -530,9 +530,14 @@ class Context:
         if recipe:
             self.notes.append(
                 f"The '{self.scale}' scale trains the CLEVR-567-family models with the cpu "
-                f"recipe (svorf.recipe.recipe_configs, docs/cpu_recipe.md): {', '.join(recipe)}; "
+                f"recipe (svorf.train.CPU_RECIPE, docs/cpu_recipe.md): {', '.join(recipe)}; "
                 "the ablation variants are applied on top of it."
             )
+        for m in self.models.values():
+            base, _ = adapter.base_configs(self.scale, m.job.train_preset, m.job.variant)
+            for note in adapter.variant_adjustments(base, m.job.variant)[1]:
+                if note not in self.notes:
+                    self.notes.append(f"Changed for the ablation on {m.job.train_preset}: {note}")
         if self.train_minutes is not None and self.models:
             done = "; ".join(
                 f"{m.job.variant} on {m.job.train_preset}: {m.steps_done} steps in "
@@ -700,10 +705,16 @@ def _measured_row(
     return row
 
 
-def _unavailable_row(spec: MeasuredRow, why: str) -> dict[str, Any]:
-    reason = "dataset_unavailable: " + why[:300]
+def _unavailable_row(
+    spec: MeasuredRow, why: str, kind: str = "dataset_unavailable"
+) -> dict[str, Any]:
+    """A measured row with every metric null: ``kind`` (``dataset_unavailable`` or
+    ``failed``) and ``why`` are the reason."""
+    reason = f"{kind}: " + why[:300]
     names = row_metrics(spec)
+    extra = {"failed": why[:1000]} if kind == "failed" else {}
     return {
+        **extra,
         "id": row_id(spec.table, spec.model, spec.dataset, "measured"),
         "table": spec.table,
         "model": spec.model,
@@ -925,6 +936,7 @@ def run_table_protocol(
     state: dict[str, Any] = {"records": {}, "tests": {}}
     skipped = 0
     unavailable: list[str] = []
+    failed: list[str] = []
     for spec in measured:
         rid = row_id(spec.table, spec.model, spec.dataset, "measured")
         try:
@@ -950,8 +962,15 @@ def run_table_protocol(
             if rec is not None:
                 state["records"][(spec.job, spec.dataset)] = rec
             continue
-        rec = ctx.model(spec.job)
-        res = ctx.evaluation(rec, test)
+        try:
+            rec = ctx.model(spec.job)
+            res = ctx.evaluation(rec, test)
+        except Exception as err:  # noqa: BLE001 - one failing row must not lose the others
+            why = f"{type(err).__name__}: {err}".splitlines()[0]
+            _log(f"row {spec.table} / {spec.model} / {spec.dataset}: FAILED: {why}")
+            failed.append(f"{spec.table} / {spec.model} / {spec.dataset}: {why}")
+            rows.append(_unavailable_row(spec, why, kind="failed"))
+            continue
         row = _measured_row(spec, rec, test, res)
         store.put(row)
         rows.append(row)
@@ -971,6 +990,13 @@ def run_table_protocol(
             dict.fromkeys(m for s in measured if (s.table, s.dataset) == k for m in s.metrics)
         )
         rows.extend(_baseline_rows(spec.table, spec.dataset, metrics, ctx.baselines(test, k_slots)))
+    if failed:
+        report["status"] = "partial"
+        ctx.notes.insert(
+            0,
+            f"{len(failed)} measured row(s) FAILED (metrics null, reason 'failed: ...'; the "
+            "command exits non-zero): " + "; ".join(failed),
+        )
     if unavailable:
         report["status"] = "partial"
         ctx.notes.append(

@@ -51,7 +51,16 @@ from scenefmt import atomic_write_json
 from svorf.config import ModelConfig
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
-from svorf.train import TrainConfig, load_run, predict_scene, run_configs, train
+from svorf.train import (
+    CPU_RECIPE,
+    CPU_RECIPE_MODEL_FIELDS,
+    TrainConfig,
+    apply_recipe,
+    load_run,
+    predict_scene,
+    run_configs,
+    train,
+)
 
 __all__ = [
     "RECIPE_LEVERS",
@@ -74,32 +83,13 @@ __all__ = [
 #: ``benchmark.metrics.segmentation_metrics``).
 SegMetricsFn = Callable[[Tensor, Tensor, int], dict[str, Tensor]]
 
-#: The recipe's choices on top of ``run_configs("cpu", "clevr567")`` (docs/cpu_recipe.md):
-#: model fields and train fields. ``recipe_configs(levers=...)`` overrides them.
-RECIPE_LEVERS: dict[str, Any] = {
-    "ray_sampling": "object_heavy",
-    "warmup": 100,
-    "nvs_warmup": 200,
-    "fg_zmin": 0.05,
-    "fg_box": 3.75,
-    "bg_outside_fg": True,
-    "comp_temperature": 1.0,
-    "coord_frame": "input_azimuth",
-    "slot_locality": 1.0,
-    # Anchored centres (docs/cpu_recipe.md, rows L, L0): "learned" centres collapsed onto
-    # one spot at seed 1; anchored ones cannot, and matched or beat them at seeds 0 and 1.
-    "slot_centre": "anchored",
-}
+#: The recipe's choices on top of the plain cpu scale (docs/cpu_recipe.md): model fields
+#: and train fields. It lives in svorf's scale registry (``svorf.train.CPU_RECIPE``), so
+#: ``svorf train --scale cpu`` and ``benchmark --scale cpu`` train the same model;
+#: ``recipe_configs(levers=...)`` overrides entries.
+RECIPE_LEVERS: dict[str, Any] = CPU_RECIPE
 
-_MODEL_LEVERS = (
-    "fg_zmin",
-    "fg_box",
-    "bg_outside_fg",
-    "comp_temperature",
-    "coord_frame",
-    "slot_locality",
-    "slot_centre",
-)
+_MODEL_LEVERS = CPU_RECIPE_MODEL_FIELDS
 
 
 def recipe_model_levers(levers: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -115,12 +105,12 @@ def recipe_configs(
 
     ``levers`` replaces entries of :data:`RECIPE_LEVERS` (model levers: fg_zmin, fg_box,
     comp_temperature; everything else is a TrainConfig field); ``train_overrides`` are
-    further TrainConfig fields (steps, lr, batch_scenes, ...).
+    further TrainConfig fields (steps, lr, batch_scenes, ...). With no levers this equals
+    ``svorf.train.run_configs("cpu", preset)`` for the CLEVR-567 family.
     """
-    lv = {**RECIPE_LEVERS, **(levers or {})}
-    model_kw = {k: lv.pop(k) for k in _MODEL_LEVERS if k in lv}
-    mcfg, tcfg = run_configs("cpu", preset)
-    return mcfg.replace(**model_kw), tcfg.replace(**{**lv, **train_overrides})
+    mcfg, tcfg = run_configs("cpu", preset, recipe=False)
+    mcfg, tcfg = apply_recipe(mcfg, tcfg, levers)
+    return mcfg, tcfg.replace(**train_overrides)
 
 
 # --------------------------------------------------------------------------- metrics

@@ -379,6 +379,28 @@ def test_interrupted_run_resumes_without_redoing_finished_rows(tmp_path, monkeyp
     validate_report(json.loads(path.read_text()))
 
 
+def test_a_failing_row_keeps_the_others_and_is_marked_failed(tmp_path, monkeypatch):
+    real_train = adapter.train
+
+    def broken_for_wo_sa(data_dir, run_dir, mcfg, tcfg, **kw):
+        if not mcfg.self_attention:
+            raise ValueError("ModelConfig refuses this combination")
+        return real_train(data_dir, run_dir, mcfg, tcfg, **kw)
+
+    monkeypatch.setattr(adapter, "train", broken_for_wo_sa)
+    path = run_table_protocol(_ctx(tmp_path), ["tab:ablation"], _tiny_rows(), None)
+    report = json.loads(path.read_text())
+    validate_report(report)
+    assert report["status"] == "partial"
+    measured = {r["model"]: r for r in report["rows"] if r["source"] == "measured"}
+    ok, bad = measured["sVORF (ours)"], measured["sVORF (w/o SA)"]
+    assert ok["metrics"]["fg_ari"] is not None and "failed" not in ok
+    assert bad["failed"].startswith("ValueError: ModelConfig refuses")
+    assert all(v is None for v in bad["metrics"].values())
+    assert all(r.startswith("failed: ValueError") for r in bad["null_reasons"].values())
+    assert any("FAILED" in n for n in report["notes"])
+
+
 def test_row_store_ignores_rows_of_another_context(tmp_path):
     a = RowStore(tmp_path, {"scale": "smoke"})
     a.put({"id": "x|y", "v": 1})

@@ -251,4 +251,4 @@ def test_a_cpu_report_says_its_models_train_with_the_cpu_recipe(tmp_path):
     report = json.loads(ctx.finish(report).read_text())
     assert any("cpu recipe" in n and "docs/cpu_recipe.md" in n for n in report["notes"])
     assert any("8 render samples (nominal 16)" in n for n in report["notes"])
-    assert report["models"][0]["config_source"] == "svorf.recipe.recipe_configs"
+    assert report["models"][0]["config_source"] == adapter.RECIPE_CONFIG_SOURCE

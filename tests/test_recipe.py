@@ -297,3 +297,32 @@ def test_bg_pos_freqs_limits_only_the_background_slots_bandwidth():
     out = model(torch.rand(1, 3, 32, 32), o, d)
     out.rgb.sum().backward()
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
+def test_svorf_train_cpu_scale_is_the_benchmark_cpu_model():
+    """``svorf train --scale cpu --preset P`` and ``benchmark --scale cpu`` build one model."""
+    from benchmark import adapter
+    from svorf.train import CPU_RECIPE_PRESETS, run_configs
+
+    for preset in ("clevr567", "clevr567-heldout", "room-chair", "room-diverse"):
+        m_svorf, t_svorf = run_configs("cpu", preset)
+        m_bench, t_bench = adapter.base_configs("cpu", preset)
+        assert m_svorf == m_bench and t_svorf == t_bench, preset
+        assert (m_svorf.slot_locality is not None) == (preset in CPU_RECIPE_PRESETS)
+    assert run_configs("cpu", "clevr567") == recipe_configs("clevr567")
+    plain, _ = run_configs("cpu", "clevr567", recipe=False)
+    assert plain.slot_locality is None and plain.fg_box is None
+
+
+def test_cosine_lr_decay_follows_steps_or_the_wall_budget():
+    from svorf.train import TrainConfig, lr_at
+
+    cfg = TrainConfig(steps=1000, lr=1e-3, warmup=10, lr_decay="cosine", lr_final_ratio=0.1)
+    assert lr_at(cfg, 4) == pytest.approx(5e-4)  # warm-up unchanged
+    assert lr_at(cfg, 500) == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5))
+    assert lr_at(cfg, 10, progress=1.0) == pytest.approx(1e-4)
+    assert lr_at(cfg, 10, progress=0.0) == pytest.approx(1e-3)
+    flat = cfg.replace(lr_decay="none")
+    assert lr_at(flat, 999) == lr_at(flat, 10, progress=1.0) == 1e-3
+    with pytest.raises(ValueError, match="lr_decay"):
+        TrainConfig(lr_decay="step")

@@ -18,7 +18,17 @@ from benchmark.figures import bar_chart, qualitative_grid
 from benchmark.paper_numbers import PAPER_TABLES
 from benchmark.runner import Context, MeasuredRow, ModelJob, run_table_protocol
 
-__all__ = ["run_ablation", "run_generalization", "run_nvs", "run_segmentation"]
+__all__ = [
+    "MEASURED_ROWS",
+    "ablation_rows",
+    "generalization_rows",
+    "nvs_rows",
+    "run_ablation",
+    "run_generalization",
+    "run_nvs",
+    "run_segmentation",
+    "segmentation_rows",
+]
 
 ROOM_AND_CLEVR = ("clevr567", "room-chair", "room-diverse")
 SEG_METRICS = ("nv_ari", "ari", "fg_ari", "nv_fg_ari", "ari_all", "fg_ari_all")
@@ -109,9 +119,19 @@ def _per_dataset_rows(table: str, metrics: tuple[str, ...]) -> list[MeasuredRow]
     return [MeasuredRow(table, "sVORF", ds, ModelJob("full", ds), metrics) for ds in ROOM_AND_CLEVR]
 
 
+def segmentation_rows() -> list[MeasuredRow]:
+    """The measured rows of ``segmentation`` (paper Table 1, tab:seg)."""
+    return _per_dataset_rows("tab:seg", SEG_METRICS)
+
+
+def nvs_rows() -> list[MeasuredRow]:
+    """The measured rows of ``nvs`` (paper Table 3, tab:nvs)."""
+    return _per_dataset_rows("tab:nvs", NVS_METRICS)
+
+
 def run_segmentation(ctx: Context) -> Path:
     """Paper Table 1 (tab:seg): NV-ARI, ARI, FG-ARI on CLEVR-567, Room-Chair, Room-Diverse."""
-    measured = _per_dataset_rows("tab:seg", SEG_METRICS)
+    measured = segmentation_rows()
 
     def figures(ctx: Context, rows: list[dict[str, Any]], state: dict[str, Any]) -> list[str]:
         pairs = [(m.job, m.dataset, m.dataset) for m in measured]
@@ -131,7 +151,7 @@ def run_segmentation(ctx: Context) -> Path:
 
 def run_nvs(ctx: Context) -> Path:
     """Paper Table 3 (tab:nvs): LPIPS, SSIM, PSNR of novel views (plus depth errors)."""
-    measured = _per_dataset_rows("tab:nvs", NVS_METRICS)
+    measured = nvs_rows()
 
     def figures(ctx: Context, rows: list[dict[str, Any]], state: dict[str, Any]) -> list[str]:
         pairs = [(m.job, m.dataset, m.dataset) for m in measured]
@@ -146,13 +166,9 @@ def run_nvs(ctx: Context) -> Path:
 ABLATION_TABLES = ["tab:ablation", "tab:supp_ablation"]
 
 
-def run_ablation(ctx: Context) -> Path:
-    """Paper tables tab:ablation and tab:supp_ablation on CLEVR-567 (NV-ARI, FG-ARI per row).
-
-    One model per variant (w/o NVS, w/o CR, density-weighted, w/o SA, w/o
-    hypernetwork, slot attention, Slot-Mixer, full); the full model's row appears
-    in both tables and is trained and evaluated once (caches).
-    """
+def ablation_rows() -> list[MeasuredRow]:
+    """The measured rows of ``ablation``: one per paper row of tab:ablation and
+    tab:supp_ablation, all trained and tested on CLEVR-567."""
     measured = []
     for table in ABLATION_TABLES:
         for prow in PAPER_TABLES[table]["rows"]:
@@ -160,6 +176,17 @@ def run_ablation(ctx: Context) -> Path:
             measured.append(
                 MeasuredRow(table, prow["model"], "clevr567", job, ("nv_ari", "fg_ari", "ari"))
             )
+    return measured
+
+
+def run_ablation(ctx: Context) -> Path:
+    """Paper tables tab:ablation and tab:supp_ablation on CLEVR-567 (NV-ARI, FG-ARI per row).
+
+    One model per variant (w/o NVS, w/o CR, density-weighted, w/o SA, w/o
+    hypernetwork, slot attention, Slot-Mixer, full); the full model's row appears
+    in both tables and is trained and evaluated once (caches).
+    """
+    measured = ablation_rows()
 
     def figures(ctx: Context, rows: list[dict[str, Any]], state: dict[str, Any]) -> list[str]:
         out = [
@@ -185,17 +212,8 @@ def run_ablation(ctx: Context) -> Path:
 GENERALIZATION_TABLES = ["tab:ab_apparance", "tab:ab_num", "text:rgb_color"]
 
 
-def run_generalization(ctx: Context) -> Path:
-    """Paper 4.6: held-out appearance, packed-CLEVR-11 arrangement, grayscale (ARI, FG-ARI).
-
-    - tab:ab_apparance: ``sVORF`` trained on clevr567-heldout/train, tested on its
-      test split (only red cylinders and blue spheres); ``sVORF(567)`` = the model
-      trained on clevr567/train, tested on the same split.
-    - tab:ab_num: 11 slots with 4 masked off per training step, trained on
-      clevr567/train, tested on packed-clevr11/test with all 11 slots.
-    - text:rgb_color: the clevr567 model on clevr567-gray/test, and on the RGB
-      clevr567/test for comparison.
-    """
+def generalization_rows() -> list[MeasuredRow]:
+    """The measured rows of ``generalization`` (see :func:`run_generalization`)."""
     full567 = ModelJob("full", "clevr567")
     metrics = ("ari", "fg_ari", "nv_ari")
     measured = [
@@ -220,6 +238,21 @@ def run_generalization(ctx: Context) -> Path:
         MeasuredRow("text:rgb_color", "sVORF (RGB test)", "clevr567", full567, metrics),
         MeasuredRow("text:rgb_color", "sVORF (grayscale test)", "clevr567-gray", full567, metrics),
     ]
+    return measured
+
+
+def run_generalization(ctx: Context) -> Path:
+    """Paper 4.6: held-out appearance, packed-CLEVR-11 arrangement, grayscale (ARI, FG-ARI).
+
+    - tab:ab_apparance: ``sVORF`` trained on clevr567-heldout/train, tested on its
+      test split (only red cylinders and blue spheres); ``sVORF(567)`` = the model
+      trained on clevr567/train, tested on the same split.
+    - tab:ab_num: 11 slots with 4 masked off per training step, trained on
+      clevr567/train, tested on packed-clevr11/test with all 11 slots.
+    - text:rgb_color: the clevr567 model on clevr567-gray/test, and on the RGB
+      clevr567/test for comparison.
+    """
+    measured = generalization_rows()
 
     def figures(ctx: Context, rows: list[dict[str, Any]], state: dict[str, Any]) -> list[str]:
         out = [
@@ -239,3 +272,12 @@ def run_generalization(ctx: Context) -> Path:
         return out + _qualitative(ctx, state, pairs)
 
     return run_table_protocol(ctx, GENERALIZATION_TABLES, measured, figures)
+
+
+#: Measured rows per table protocol (tests build every cell's configs from this).
+MEASURED_ROWS = {
+    "segmentation": segmentation_rows,
+    "nvs": nvs_rows,
+    "ablation": ablation_rows,
+    "generalization": generalization_rows,
+}
