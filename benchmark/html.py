@@ -173,6 +173,36 @@ def _verdicts(report: dict[str, Any]) -> str:
     return "".join(out)
 
 
+def _orderings(report: dict[str, Any]) -> str:
+    """The paper's comparisons and whether the measured rows keep them."""
+    os_ = report.get("orderings") or []
+    if not os_:
+        return ""
+    out = [
+        (
+            "<h2>The paper's comparisons</h2><table><tr><th class=l>table</th>"
+            "<th class=l>claim</th><th class=l>metric</th><th>A</th><th>B</th><th>margin</th>"
+            "<th>seed spread</th><th class=l>paper</th><th class=l>measured</th></tr>"
+        )
+    ]
+    for o in os_:
+        held = o["measured_holds"]
+        cls = "measured" if held else "baseline"
+        spread = o.get("seed_spread")
+        out.append(
+            f"<tr class={cls}><td class=l>{_e(o['table'])}</td><td class=l>{_e(o['claim'])}</td>"
+            f"<td class=l>{_e(o['metric'])}</td>"
+            f"<td>{fmt_value(o['a']['measured'], o['metric'])}</td>"
+            f"<td>{fmt_value(o['b']['measured'], o['metric'])}</td>"
+            f"<td>{fmt_value(o['margin'], o['metric'])}</td>"
+            f"<td>{fmt_value(spread, o['metric']) if spread is not None else '-'}</td>"
+            f"<td class=l>{_e(o['paper_holds'])}</td>"
+            f"<td class=l>{'holds' if held else ('n/a' if held is None else '<b>does not hold</b>')}</td></tr>"
+        )
+    out.append("</table>")
+    return "".join(out)
+
+
 def render_html(report: dict[str, Any]) -> str:
     """The page for one report dict (pure function; see :func:`write_index`)."""
     scale = report["scale"]
@@ -207,6 +237,7 @@ def render_html(report: dict[str, Any]) -> str:
     parts.append("<table class=meta>")
     parts.extend(f"<tr><th class=l>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in meta)
     parts.append("</table>")
+    parts.append(_orderings(report))
     if report.get("notes"):
         parts.append("<h2>Notes</h2><ul>")
         parts.extend(f"<li>{_e(n)}</li>" for n in report["notes"])

@@ -52,6 +52,7 @@ from benchmark.evaluate import (
 )
 from benchmark.generator_bridge import DatasetUnavailable
 from benchmark.metrics import lpips_weight_candidates
+from benchmark.orderings import Ordering, check_orderings, orderings_summary
 from benchmark.paper_numbers import PAPER_TABLES, paper_rows
 from benchmark.report import RowStore, new_report, stable_hash, write_json, write_report
 from benchmark.scales import ScaleSettings, get_scale
@@ -889,6 +890,7 @@ def run_table_protocol(
     tables: list[str],
     measured: list[MeasuredRow],
     figures: Callable[[Context, list[dict[str, Any]], dict[str, Any]], list[str]] | None = None,
+    orderings: list[Ordering] | None = None,
 ) -> Path:
     """Run a protocol made of paper tables: train/evaluate every measured row, write the report.
 
@@ -898,6 +900,8 @@ def run_table_protocol(
         measured: the measured rows (one model evaluation each; models and
             evaluations are shared through the caches).
         figures: ``fn(ctx, rows, state) -> [file names]`` drawing into ``ctx.report_dir``.
+        orderings: the paper's comparisons for these tables; checked on the rows into the
+            report's ``orderings`` section (``benchmark.orderings``).
 
     Returns:
         Path of the written ``report.json``.
@@ -1013,6 +1017,9 @@ def run_table_protocol(
     rows.sort(key=lambda r: (order.get(r["table"], 99), src[r["source"]]))
     report["rows"] = rows
     report["verdicts"] = verdicts_for(rows, ctx.settings)
+    if orderings:
+        report["orderings"] = check_orderings(rows, orderings)
+        ctx.notes.append(orderings_summary(report["orderings"]))
     for r in rows:
         psnr = r["metrics"].get("psnr") if r["source"] == "measured" else None
         flat = next(

@@ -1,0 +1,182 @@
+"""The paper's orderings, checked on measured rows: does the benchmark show what the paper says?
+
+Where this sits: the table protocols (``benchmark.protocols.tables``) declare the
+comparisons that the paper's text draws from each table as :class:`Ordering` objects;
+:func:`check_orderings` reads the finished report rows and returns the report's
+``orderings`` section. Nothing here trains or evaluates.
+
+Two kinds of claim:
+
+- ``above``: model A scores higher than model B on a metric (e.g. the full model far
+  above "w/o NVS" on NV-ARI). It holds on the measured rows when A's value exceeds B's.
+- ``close``: A is within ``tolerance`` points of B (e.g. the model trained on held-out
+  appearances close to the CLEVR-567 model on the held-out test set). It holds when
+  ``|A - B| <= tolerance``.
+
+B may be a chance baseline (``b_source="baseline"``: the best baseline row on the same
+table and dataset), for tables whose paper comparisons are between methods that the
+benchmark does not train.
+
+Each entry gives the measured and paper values, whether the paper's own numbers keep the
+claim, whether the measured rows do, the margin, and the seed-to-seed spread where rows of
+more than one seed exist (``seed_spread``; null with a reason when one seed was run), so
+that a margin smaller than the spread reads as "not shown".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["Ordering", "check_orderings", "orderings_summary"]
+
+
+@dataclass(frozen=True)
+class Ordering:
+    """One comparison the paper draws from a table.
+
+    Attributes:
+        table: paper table id (``tab:ablation``).
+        claim: the sentence, as a reader would say it.
+        metric: metric name of the rows (``fg_ari``).
+        a_model / a_dataset: the row expected to be higher (or close).
+        b_model / b_dataset: the row it is compared with; with ``b_source="baseline"``
+            ``b_model`` is ignored and the best chance baseline of (table, b_dataset) is used.
+        kind: ``above`` or ``close``.
+        tolerance: points for ``close``.
+    """
+
+    table: str
+    claim: str
+    metric: str
+    a_model: str
+    a_dataset: str
+    b_model: str
+    b_dataset: str
+    kind: str = "above"
+    tolerance: float = 5.0
+    b_source: str = "measured"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("above", "close"):
+            raise ValueError(f"Ordering.kind must be 'above' or 'close', got {self.kind!r}")
+        if self.b_source not in ("measured", "baseline"):
+            raise ValueError(f"Ordering.b_source must be measured|baseline, got {self.b_source!r}")
+
+
+def _value(rows: list[dict[str, Any]], table: str, model: str, dataset: str, source: str, m: str):
+    for r in rows:
+        if (r["source"], r["table"], r["model"], r["dataset"]) == (source, table, model, dataset):
+            v = r["metrics"].get(m)
+            return None if v is None else float(v)
+    return None
+
+
+def _best_baseline(rows: list[dict[str, Any]], table: str, dataset: str, m: str):
+    best = None
+    for r in rows:
+        if r["source"] == "baseline" and r["table"] == table and r["dataset"] == dataset:
+            v = r["metrics"].get(m)
+            if v is not None and (best is None or v > best[1]):
+                best = (r["model"], float(v))
+    return best
+
+
+def _holds(kind: str, a: float | None, b: float | None, tol: float) -> bool | None:
+    if a is None or b is None:
+        return None
+    return a > b if kind == "above" else abs(a - b) <= tol
+
+
+def check_orderings(
+    rows: list[dict[str, Any]],
+    orderings: list[Ordering],
+    seed_rows: dict[int, list[dict[str, Any]]] | None = None,
+) -> list[dict[str, Any]]:
+    """The ``orderings`` section of a report.
+
+    Args:
+        rows: the report's rows (paper, measured, baseline).
+        orderings: the comparisons of the report's tables.
+        seed_rows: optional rows of other seeds' reports of the same protocol, by seed; the
+            spread of ``A - B`` over the seeds is then reported.
+
+    Returns:
+        One dict per ordering: table, claim, metric, kind, a / b (model, dataset, measured,
+        paper), paper_holds, measured_holds (null when a value is missing), margin (A - B,
+        measured), seed_spread and its reason when null.
+    """
+    tables = {r["table"] for r in rows}
+    out = []
+    for o in orderings:
+        if o.table not in tables:
+            continue
+        a_meas = _value(rows, o.table, o.a_model, o.a_dataset, "measured", o.metric)
+        a_paper = _value(rows, o.table, o.a_model, o.a_dataset, "paper", o.metric)
+        if o.b_source == "baseline":
+            best = _best_baseline(rows, o.table, o.b_dataset, o.metric)
+            b_name = f"best chance baseline ({best[0]})" if best else "best chance baseline"
+            b_meas, b_paper = (best[1] if best else None), None
+        else:
+            b_name = o.b_model
+            b_meas = _value(rows, o.table, o.b_model, o.b_dataset, "measured", o.metric)
+            b_paper = _value(rows, o.table, o.b_model, o.b_dataset, "paper", o.metric)
+        margins = []
+        for srows in (seed_rows or {}).values():
+            a_s = _value(srows, o.table, o.a_model, o.a_dataset, "measured", o.metric)
+            b_s = (
+                (_best_baseline(srows, o.table, o.b_dataset, o.metric) or (None, None))[1]
+                if o.b_source == "baseline"
+                else _value(srows, o.table, o.b_model, o.b_dataset, "measured", o.metric)
+            )
+            if a_s is not None and b_s is not None:
+                margins.append(a_s - b_s)
+        margin = None if a_meas is None or b_meas is None else a_meas - b_meas
+        if margin is not None and margins:
+            allm = [margin, *margins]
+            spread, spread_reason = max(allm) - min(allm), None
+        else:
+            spread, spread_reason = None, "one seed measured: no seed-to-seed spread"
+        measured_holds = _holds(o.kind, a_meas, b_meas, o.tolerance)
+        out.append(
+            {
+                "table": o.table,
+                "claim": o.claim,
+                "metric": o.metric,
+                "kind": o.kind,
+                "tolerance": o.tolerance if o.kind == "close" else None,
+                "a": {
+                    "model": o.a_model,
+                    "dataset": o.a_dataset,
+                    "measured": a_meas,
+                    "paper": a_paper,
+                },
+                "b": {
+                    "model": b_name,
+                    "dataset": o.b_dataset,
+                    "measured": b_meas,
+                    "paper": b_paper,
+                },
+                "paper_holds": _holds(o.kind, a_paper, b_paper, o.tolerance),
+                "measured_holds": measured_holds,
+                "margin": margin,
+                "seed_spread": spread,
+                "seed_spread_reason": spread_reason,
+                "why_null": None
+                if measured_holds is not None
+                else "a measured value is missing (row failed, left out or not computed)",
+            }
+        )
+    return out
+
+
+def orderings_summary(section: list[dict[str, Any]]) -> str:
+    """One line: how many of the paper's comparisons the measured rows keep."""
+    judged = [o for o in section if o["measured_holds"] is not None]
+    held = sum(bool(o["measured_holds"]) for o in judged)
+    missing = len(section) - len(judged)
+    return (
+        f"The measured rows keep {held} of {len(judged)} of the paper's comparisons"
+        + (f" ({missing} could not be judged: a value is missing)" if missing else "")
+        + "; see 'orderings'."
+    )
