@@ -27,6 +27,7 @@ packed-CLEVR-11 setting of ``tab:ab_num``) are ``ModelConfig`` field overrides i
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +52,7 @@ __all__ = [
     "dataset_fingerprint",
     "diverging_run",
     "ground_truth",
+    "init_preset",
     "load_model",
     "model_config",
     "num_slots",
@@ -110,6 +112,13 @@ def _svorf_train():
             f"benchmark needs svorf.train (train, train_config, load_run, predict_scene): {err}"
         ) from err
     return svorf_train
+
+
+def init_preset(train_preset: str) -> str | None:
+    """The training preset whose model starts ``train_preset``'s (svorf's
+    ``PresetSpec.init_from``; the paper starts Room-Diverse from CLEVR-567), else None."""
+    spec = _svorf_train().PRESETS.get(train_preset)
+    return None if spec is None else spec.init_from
 
 
 def svorf_preset(train_preset: str, variant: str) -> str:
@@ -229,6 +238,7 @@ def train(
     *,
     progress: bool = True,
     max_wall_s: float | None = None,
+    init_from: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """Train (or resume training) one model into ``run_dir`` (svorf checkpoints there).
 
@@ -251,6 +261,7 @@ def train(
         resume=True,
         progress=progress,
         max_wall_s=max_wall_s,
+        init_from=init_from,
     )
     return _jsonable_summary(out)
 
@@ -268,6 +279,8 @@ def _jsonable_summary(out: Any) -> dict[str, Any]:
             keep[k] = v
         elif isinstance(v, float):
             keep[k] = v if np.isfinite(v) else None
+        elif k == "init_from" and isinstance(v, dict):  # what started the run (JSON already)
+            keep[k] = json.loads(json.dumps(v))
     return keep
 
 

@@ -166,6 +166,7 @@ class ModelRecord:
             "steps_done": self.steps_done,
             "config_source": self.config_source,
             "train_budget": self.budget_report(),
+            "init_from": self.summary.get("init_from"),
             "summary": self.summary,
         }
 
@@ -322,7 +323,16 @@ class Context:
         if self.train_budget_s is not None:
             # Only when set, so that the keys of step-limited runs stay what they were.
             key_src["train_budget_s"] = self.train_budget_s
+        init = self.init_job(job)
+        if init is not None:  # only when set: other keys stay what they were
+            key_src["init_from"] = self.model_key(init)[0]
         return stable_hash(key_src), key_src
+
+    def init_job(self, job: ModelJob) -> ModelJob | None:
+        """The model whose weights start ``job``'s training (svorf's ``PresetSpec.init_from``:
+        the paper starts Room-Diverse from a CLEVR-567 model), None for most models."""
+        pre = adapter.init_preset(job.train_preset)
+        return None if pre is None else ModelJob("full", pre)
 
     def model(self, job: ModelJob, train: bool = True) -> ModelRecord | None:
         """Train ``job`` or reuse the cached run with the same key (timed under ``training``).
@@ -370,6 +380,10 @@ class Context:
         elif not train:
             return None
         else:
+            init = self.init_job(job)
+            init_rec = None if init is None else self.model(init)
+            if init_rec is not None:
+                _log(f"model {job.variant} on {job.train_preset}: starts from run {init_rec.key}")
             budget = (
                 ""
                 if self.train_minutes is None
@@ -389,6 +403,7 @@ class Context:
                 job=job,
                 progress=self.progress,
                 max_wall_s=self.train_budget_s,
+                init_from=None if init_rec is None else init_rec.run_dir,
             )
             self.timers["training"] += wall
             train_wall = payload["train_wall_s"]
@@ -580,6 +595,7 @@ def train_run(
     job: ModelJob,
     progress: bool,
     max_wall_s: float | None,
+    init_from: Path | None = None,
 ) -> tuple[dict[str, Any], float]:
     """Train one cached model run and mark it finished (``benchmark_run.json``).
 
@@ -590,7 +606,9 @@ def train_run(
         ``(marker payload, wall seconds of this call)``.
     """
     t = time.perf_counter()
-    summary = adapter.train(ds_path, run_dir, mcfg, tcfg, progress=progress, max_wall_s=max_wall_s)
+    summary = adapter.train(
+        ds_path, run_dir, mcfg, tcfg, progress=progress, max_wall_s=max_wall_s, init_from=init_from
+    )
     wall = time.perf_counter() - t
     train_wall = summary.get("train_wall_s")
     train_wall = float(train_wall) if isinstance(train_wall, (int, float)) else wall

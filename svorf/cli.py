@@ -67,6 +67,13 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--image-size", type=int, help="training resolution (default: the scale's)")
     t.add_argument("--device", help="auto (default), cpu, cuda or cuda:N")
     t.add_argument("--max-scenes", type=int, help="use only the first N scenes")
+    t.add_argument(
+        "--init-from",
+        metavar="RUN",
+        default=None,
+        help="start from the weights of another run (every tensor whose name and shape "
+        "match); the paper starts Room-Diverse models from a CLEVR-567 model",
+    )
     t.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -197,6 +204,7 @@ def _train_ranked(
         eval_data=a.eval_data,
         max_scenes=a.max_scenes,
         progress=not a.no_progress,
+        init_from=a.init_from,
     )
     if main:
         print(json.dumps(summary, indent=2))

@@ -68,6 +68,7 @@ __all__ = [
     "apply_recipe",
     "dataset_fingerprint",
     "default_eval",
+    "init_weights_from",
     "load_run",
     "predict_scene",
     "recipe_applies",
@@ -207,6 +208,11 @@ class PresetSpec:
     num_slots: int
     data_presets: tuple[str, ...]
     slot_mask_train: int = 0
+    init_from: str | None = None
+    """Training preset whose model starts this one (paper appendix A: "we initialize our
+    models for Room-Diverse using weights from a model that have previously been trained on
+    the CLEVR-567 dataset"); the benchmark trains that model first and passes its run as
+    ``train(init_from=...)``; ``svorf train --init-from RUN`` does the same by hand."""
 
 
 #: Training presets. The paper's K per dataset (appendix A): 8 for CLEVR-567, 5 for the
@@ -218,7 +224,7 @@ PRESETS: dict[str, PresetSpec] = {
     "clevr567-heldout": PresetSpec(8, ("clevr567-heldout",)),
     "packed-clevr11": PresetSpec(11, ("clevr567",), slot_mask_train=4),
     "room-chair": PresetSpec(5, ("room-chair",)),
-    "room-diverse": PresetSpec(5, ("room-diverse",)),
+    "room-diverse": PresetSpec(5, ("room-diverse",), init_from="clevr567"),
     "synthetic": PresetSpec(4, ("synthetic",)),
 }
 
@@ -657,6 +663,7 @@ def train(
     max_scenes: int | None = None,
     progress: bool = True,
     max_wall_s: float | None = None,
+    init_from: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """Train sVORF on a split folder and write a run folder.
 
@@ -678,6 +685,10 @@ def train(
         max_wall_s: stop (with a checkpoint) once the run's training wall time, summed
             over resumed calls, reaches this many seconds, even before ``train_cfg.steps``
             (time-budgeted runs; ``resume=True`` continues them).
+        init_from: a run folder or checkpoint whose weights start this run (every tensor
+            whose name and shape match; see :func:`init_weights_from`), e.g. the paper's
+            Room-Diverse models start from a CLEVR-567 model. Used at step 0 only; recorded
+            in the checkpoint, ``config.json`` and the summary (``init_from``).
 
     Returns:
         Run summary: ``steps``, ``start_step``, ``final_loss``, ``wall_s`` (this call),
@@ -754,6 +765,7 @@ def train(
         model = distributed.prepare_model(model, device, dctx)
     opt = torch.optim.Adam(model.parameters(), lr=lr_at(train_cfg, 0), betas=train_cfg.betas)
     start, wall_offset, resumed_loss = 0, 0.0, math.nan
+    init_info: dict[str, Any] | None = None
     out.mkdir(parents=True, exist_ok=True)
     log_path, eval_path = out / "log.jsonl", out / "eval.jsonl"
 
@@ -795,6 +807,7 @@ def train(
             ) from e
         start, wall_offset = int(ckpt["step"]), float(ckpt.get("wall_s", 0.0))
         resumed_loss = float(ckpt.get("loss", math.nan))
+        init_info = ckpt.get("init_from")
         # The state now lives in model/optimizer; the checkpoint's own copy of the weights
         # would otherwise stay alive (a second copy of the model) for the whole run.
         del ckpt
@@ -804,6 +817,8 @@ def train(
     elif main:
         for p in (log_path, eval_path):
             p.unlink(missing_ok=True)
+    if init_from is not None and start == 0:
+        init_info = init_weights_from(getattr(model, "module", model), init_from)
     if dctx is not None:  # identical already (same seed / checkpoint); made certain here
         distributed.broadcast_module(model)
     if main:
@@ -813,6 +828,7 @@ def train(
                 "model": model_cfg.to_dict(),
                 "train": train_cfg.to_dict(),
                 "dataset": data_info,
+                **({"init_from": init_info} if init_info else {}),
             },
         )
 
@@ -831,6 +847,7 @@ def train(
                 "loss": last_loss,
                 "torch_version": str(torch.__version__),
                 **({"error_map": error_map.state_dict()} if error_map is not None else {}),
+                **({"init_from": init_info} if init_info else {}),
             },
             ckpt_path,
         )
@@ -988,12 +1005,48 @@ def train(
         "checkpoint": str(ckpt_path),
         "log": str(log_path),
         "dataset_fingerprint": dataset.fingerprint,
+        "init_from": init_info,
     }
     if dctx is not None:
         summary["world_size"] = dctx.world_size
     if main:
         atomic_write_json(out / "summary.json", summary)
     return summary
+
+
+def init_weights_from(model: torch.nn.Module, source: str | os.PathLike) -> dict[str, Any]:
+    """Copy into ``model`` every tensor of the checkpoint ``source`` (a run folder or a
+    checkpoint file) whose name and shape match; the rest keep their initialisation.
+
+    A model with another slot count (Room-Diverse K=5 from a CLEVR-567 K=8 model) keeps its
+    own slot embeddings; encoder, decoder, hypernetwork and composition carry over.
+
+    Returns:
+        ``{"path", "step", "loaded", "kept", "kept_names"}``: what was copied and what not.
+
+    Raises:
+        CheckpointError: ``source`` holds no readable checkpoint, or no tensor matched.
+    """
+    path = Path(source)
+    if path.is_dir():
+        path = path / CHECKPOINT_NAME
+    if not path.is_file():
+        raise CheckpointError(f"--init-from {source}: no checkpoint at {path}")
+    ckpt = _read_checkpoint(path)
+    theirs = ckpt["model"]
+    own = model.state_dict()
+    take = {k: v for k, v in theirs.items() if k in own and own[k].shape == v.shape}
+    if not take:
+        raise CheckpointError(f"--init-from {source}: no tensor matches this model's")
+    model.load_state_dict(take, strict=False)
+    kept = sorted(k for k in own if k not in take)
+    return {
+        "path": str(path.resolve()),
+        "step": int(ckpt.get("step", 0)),
+        "loaded": len(take),
+        "kept": len(kept),
+        "kept_names": kept[:50],
+    }
 
 
 def _average_step(

@@ -401,6 +401,22 @@ def test_a_failing_row_keeps_the_others_and_is_marked_failed(tmp_path, monkeypat
     assert any("FAILED" in n for n in report["notes"])
 
 
+def test_room_diverse_model_starts_from_the_clevr567_model(tmp_path):
+    m = ("ari", "fg_ari")
+    rows = [MeasuredRow("tab:seg", "sVORF", "room-diverse", ModelJob("full", "room-diverse"), m)]
+    path = run_table_protocol(_ctx(tmp_path), ["tab:seg"], rows, None)
+    report = json.loads(path.read_text())
+    validate_report(report)
+    models = {m["train_dataset"]: m for m in report["models"]}
+    room = models["room-diverse/train"]
+    init = room["init_from"]
+    assert init is not None and init["loaded"] > 0
+    clevr_run = next(
+        p for p in (tmp_path / "reports" / "runs").iterdir() if p.name != room["run_key"]
+    )
+    assert init["path"] == str((clevr_run / "checkpoint.pt").resolve())
+
+
 def test_row_store_ignores_rows_of_another_context(tmp_path):
     a = RowStore(tmp_path, {"scale": "smoke"})
     a.put({"id": "x|y", "v": 1})

@@ -80,3 +80,38 @@ def test_every_cpu_scale_model_trains_one_step(preset, variant, split, tmp_path)
         torch.set_num_threads(n)
     assert summary["steps"] == 1
     assert torch.isfinite(torch.tensor(summary["final_loss"]))
+
+
+def test_room_diverse_starts_from_the_clevr567_model(split, tmp_path):
+    """Paper appendix A: Room-Diverse models start from a CLEVR-567 model's weights."""
+    from svorf.train import init_weights_from
+
+    assert adapter.init_preset("room-diverse") == "clevr567"
+    assert adapter.init_preset("clevr567") is None
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        tcfg = adapter.train_config("smoke", "clevr567", "full", seed=0, device="cpu")
+        tcfg = dataclasses.replace(tcfg, steps=2, batch_scenes=1, rays_per_scene=16)
+        src = adapter.model_config("smoke", "clevr567")
+        train(split, tmp_path / "clevr", src, tcfg, progress=False)
+        dst = adapter.model_config("smoke", "room-diverse")  # K=5 instead of 8
+        summary = train(
+            split, tmp_path / "room", dst, tcfg.replace(steps=1), progress=False,
+            init_from=tmp_path / "clevr",
+        )  # fmt: skip
+    finally:
+        torch.set_num_threads(n)
+    info = summary["init_from"]
+    assert info["step"] == 2 and info["loaded"] > 0 and info["kept"] > 0
+    assert all("slot" in k or "pos" in k or "query" in k for k in info["kept_names"]), info
+    model = adapter.load_model(tmp_path / "clevr")
+    from svorf.model import SVORF
+
+    fresh = SVORF(dst)
+    res = init_weights_from(fresh, tmp_path / "clevr")
+    for k, v in fresh.state_dict().items():
+        theirs = model.state_dict().get(k)
+        if theirs is not None and theirs.shape == v.shape:
+            assert torch.equal(theirs, v), k
+    assert res["loaded"] == info["loaded"]
