@@ -975,6 +975,7 @@ def run_table_protocol(
             stored is not None
             and stored.get("test_fingerprint") == test.fingerprint
             and stored.get("run_key") == ctx.model_key(spec.job)[0]
+            and set(stored.get("metrics", {})) == set(row_metrics(spec))  # same columns
         ):
             _log(f"row done, skipped: {spec.table} / {spec.model} / {spec.dataset}")
             skipped += 1

@@ -32,7 +32,7 @@ __all__ = [
 ]
 
 ROOM_AND_CLEVR = ("clevr567", "room-chair", "room-diverse")
-SEG_METRICS = ("nv_ari", "ari", "fg_ari", "nv_fg_ari", "ari_all", "fg_ari_all")
+SEG_METRICS = ("nv_ari", "ari", "fg_ari", "nv_fg_ari", "ari_all", "fg_ari_all", "depth_abs_rel")
 NVS_METRICS = ("lpips", "ssim", "psnr", "depth_abs_rel", "depth_rmse")
 
 
