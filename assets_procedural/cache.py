@@ -22,7 +22,6 @@ from __future__ import annotations
 import io
 import os
 import re
-import tempfile
 from pathlib import Path
 
 import trimesh
@@ -30,6 +29,7 @@ import trimesh
 from assets_procedural.chairs import CHAIR_GENERATOR_VERSION, _check_id, chair_mesh
 from assets_procedural.textures import TEXTURE_GENERATOR_VERSION, texture_image
 from assets_procedural.textures import _check_id as _check_texture_id
+from scenefmt import mkstemp_beside
 
 ENV_VAR = "SVORF_ASSET_CACHE"
 DEFAULT_CACHE_DIR = Path("~/.cache/svorf/assets")
@@ -52,7 +52,7 @@ def _safe(version: str) -> str:
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (unique temp file in the same dir + rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = mkstemp_beside(path)  # mode 0o666 & ~umask, not mkstemp's 0600
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)

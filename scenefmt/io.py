@@ -6,17 +6,79 @@ import io
 import json
 import os
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from PIL import Image
 
+_FILE_MODE: int | None = None
+_FILE_MODE_LOCK = threading.Lock()
+
+
+def _read_umask() -> int:
+    # Linux reports the umask without changing it (race-free, kernel >= 4.7).
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    # Elsewhere the only way to read it is to set it and put it back. The umask is
+    # process-wide: a file another thread creates between these two calls gets umask 0,
+    # so this runs at most once per process (under the lock) and the result is cached.
+    old = os.umask(0)
+    os.umask(old)
+    return old
+
+
+def default_file_mode() -> int:
+    """The mode a plain ``open(path, "w")`` gives a new file: ``0o666 & ~umask``.
+
+    ``tempfile.mkstemp`` creates files with mode 0600 whatever the umask, so every
+    temp-file-then-rename writer must chmod its temp file to this (use
+    :func:`mkstemp_beside`, which does). The umask is read once, at the first call, and
+    cached; after changing the umask in-process call :func:`reset_file_mode_cache`.
+    """
+    global _FILE_MODE
+    with _FILE_MODE_LOCK:
+        if _FILE_MODE is None:
+            _FILE_MODE = 0o666 & ~_read_umask()
+        return _FILE_MODE
+
+
+def reset_file_mode_cache() -> None:
+    """Forget the cached umask (the next :func:`default_file_mode` reads it again)."""
+    global _FILE_MODE
+    with _FILE_MODE_LOCK:
+        _FILE_MODE = None
+
+
+def mkstemp_beside(path: str | os.PathLike, suffix: str = ".tmp") -> tuple[int, Path]:
+    """A new hidden temp file in ``path``'s folder, for an atomic write of ``path``.
+
+    Like ``tempfile.mkstemp`` (returns ``(fd, temp path)``; the caller closes the fd and
+    ``os.replace``-s the temp file onto ``path``), but the file has
+    :func:`default_file_mode` instead of 0600, so the renamed file gets the mode a plain
+    ``open()`` would have given it.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    try:
+        os.fchmod(fd, default_file_mode())
+    except BaseException:
+        os.close(fd)
+        os.unlink(tmp)
+        raise
+    return fd, Path(tmp)
+
 
 def _tmp_path(path: Path, suffix: str = ".tmp") -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    fd, tmp = mkstemp_beside(path, suffix)
     os.close(fd)
-    return Path(tmp)
+    return tmp
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -45,7 +45,6 @@ import resource
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,6 +52,8 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+
+from scenefmt import mkstemp_beside
 
 from .compose import masked_softmax
 from .config import ModelConfig, bf16_native, model_config
@@ -423,13 +424,13 @@ def format_table(report: dict[str, Any]) -> str:
 
 def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
+    fd, tmp = mkstemp_beside(path)  # mode 0o666 & ~umask, not mkstemp's 0600
     try:
         with os.fdopen(fd, "w") as f:
             json.dump(data, f, indent=2)
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
 
 

@@ -399,9 +399,12 @@ def lr_at(cfg: TrainConfig, step: int, progress: float | None = None) -> float:
 
 
 def _atomic_torch_save(obj: Any, path: Path) -> None:
+    from scenefmt import default_file_mode
+
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), default_file_mode())  # as open() gives, not mkstemp's 0600
             torch.save(obj, f)
             f.flush()
             os.fsync(f.fileno())
