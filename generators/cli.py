@@ -176,7 +176,10 @@ def _preview(argv: list[str]) -> int:
     except (ValueError, BpyMissingError) as e:
         return _fail(str(e).splitlines()[0])
     path = write_contact_sheet(out / "split", out / "preview.png", a.n)
-    print(f"generate preview: {path} (rows = scenes; per view: RGB | instance ids | depth)")
+    print(
+        f"generate preview: {path} (rows = scenes; per view: RGB | instance ids | depth, "
+        "near = yellow ... far = dark)"
+    )
     return 0
 
 

@@ -2,7 +2,10 @@
 
 Data flow: split folder (``scenefmt``) -> :func:`contact_sheet` (uint8 image) ->
 PNG. ``generate preview`` renders a few scenes into ``DIR/split`` and writes
-``DIR/preview.png``.
+``DIR/preview.png``, with a legend strip below (tile order and a depth colour bar).
+
+Depth convention (shared with ``svorf render``): viridis with near = bright yellow,
+far = dark purple; no hit (inf) is black.
 """
 
 from __future__ import annotations
@@ -28,8 +31,13 @@ def colour_ids(ids: np.ndarray) -> np.ndarray:
     return _PALETTE[ids]
 
 
-def colour_depth(depth: np.ndarray, near: float = 6.0, far: float = 20.0) -> np.ndarray:
-    """float [H, W] planar depth -> uint8 [H, W, 3] (viridis, near..far; inf = black)."""
+#: The fixed depth range of the preview's colour scale (world units).
+DEPTH_NEAR, DEPTH_FAR = 6.0, 20.0
+
+
+def colour_depth(depth: np.ndarray, near: float = DEPTH_NEAR, far: float = DEPTH_FAR) -> np.ndarray:
+    """float [H, W] planar depth -> uint8 [H, W, 3]: viridis, ``near`` = bright yellow,
+    ``far`` = dark purple (clipped outside); inf = black."""
     import matplotlib
 
     x = np.clip((np.nan_to_num(depth, posinf=far) - near) / (far - near), 0, 1)
@@ -57,10 +65,34 @@ def contact_sheet(root: str | Path, n_scenes: int | None = None, gap: int = 2) -
     return np.concatenate(rows, axis=0)
 
 
+def with_legend(sheet: np.ndarray, near: float = DEPTH_NEAR, far: float = DEPTH_FAR) -> np.ndarray:
+    """``sheet`` with a white strip below: the tile order and a depth colour bar labelled
+    'near' (bright) ... 'far' (dark) in world units. uint8 [H', W, 3]."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    w = sheet.shape[1]
+    size = 12
+    try:
+        font = ImageFont.load_default(size=size)
+    except (TypeError, ValueError, OSError, ImportError):  # pragma: no cover - no FreeType
+        font = ImageFont.load_default()
+    im = Image.new("RGB", (w, 2 * size + 14), (255, 255, 255))
+    draw = ImageDraw.Draw(im)
+    draw.text((4, 4), "rows: scenes; per view: RGB | ids | depth", fill=(0, 0, 0), font=font)
+    bar_w = max(40, min(200, w // 3))
+    x0 = w - bar_w - 8
+    ramp = np.linspace(near, far, bar_w)[None, :].repeat(size, axis=0)
+    im.paste(Image.fromarray(colour_depth(ramp, near, far)), (x0, 4))
+    ty = 4 + size + 2
+    draw.text((x0, ty), f"near {near:g}", fill=(0, 0, 0), font=font, anchor="la")
+    draw.text((x0 + bar_w, ty), f"far {far:g}", fill=(0, 0, 0), font=font, anchor="ra")
+    return np.concatenate([sheet, np.asarray(im)], axis=0)
+
+
 def write_contact_sheet(root: str | Path, path: str | Path, n_scenes: int | None = None) -> Path:
     from PIL import Image
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(contact_sheet(root, n_scenes)).save(path)
+    Image.fromarray(with_legend(contact_sheet(root, n_scenes))).save(path)
     return path

@@ -5,7 +5,8 @@ Usage::
     svorf train --data DIR --preset clevr567 --scale smoke|cpu|paper --out RUN
                 [--steps N] [--resume] [--seed S] [--eval-data DIR] [--image-size N]
                 [--device auto|cpu|cuda] [--max-scenes N] [--threads N] [--no-progress]
-    svorf render RUN --data DIR --scene I [--out DIR] [--input-view V] [--chunk N]
+    svorf render RUN --data DIR --scene I [--out DIR] [--force] [--allow-preset-mismatch]
+                 [--input-view V] [--chunk N] [--device auto|cpu|cuda]
     svorf info --scale paper [--preset clevr567] [--image-size N]
 
     torchrun --nproc_per_node N -m svorf.cli train ...   (data parallel, see below)
@@ -14,6 +15,14 @@ Usage::
 the process group (NCCL on CUDA, gloo on CPU) and trains data-parallel: the global batch
 stays the scale's ``batch_scenes`` (it must be divisible by the number of ranks), rank 0
 writes the run folder and prints; see ``svorf.distributed`` and ``docs/scaleout.md``.
+
+``svorf render`` writes into ``RUN/render/{preset}-{split}/scNNNN`` (named after the
+data's manifest, so renders of different datasets never mix) and refuses a folder that
+already holds files unless ``--force``. It refuses data of another preset than the run's
+training data (as ``svorf train`` refuses data of another preset than ``--preset``),
+except the paper's generalization tests (:data:`GENERALIZATION_TEST_DATA`: a CLEVR-567
+model on clevr567-heldout, clevr567-gray or packed-clevr11 test data);
+``--allow-preset-mismatch`` renders any other pair.
 
 Bad input (unknown preset or scale, a data folder that is not a split or does not fit
 the preset or scale, a corrupt checkpoint) prints one line ``svorf: error: ...`` and
@@ -24,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -34,7 +44,15 @@ if TYPE_CHECKING:
     from svorf.distributed import DistContext
     from svorf.train import TrainConfig
 
-__all__ = ["main"]
+__all__ = ["GENERALIZATION_TEST_DATA", "main"]
+
+#: Data presets a run may be rendered on besides its training data's own preset: the
+#: paper's generalization tests (section 4.6; ``benchmark run generalization``) test the
+#: CLEVR-567 model on held-out appearances, grayscale images and packed 11-object scenes.
+#: Keys and values are data presets (the ``preset`` of a split's ``manifest.json``).
+GENERALIZATION_TEST_DATA: dict[str, tuple[str, ...]] = {
+    "clevr567": ("clevr567-heldout", "clevr567-gray", "packed-clevr11"),
+}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -81,7 +99,18 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("run", help="run folder written by `svorf train`")
     r.add_argument("--data", required=True, help="split folder holding the scene")
     r.add_argument("--scene", type=int, required=True, help="scene number (sc%%04d)")
-    r.add_argument("--out", help="output folder (default RUN/render/scNNNN)")
+    r.add_argument(
+        "--out", help="output folder (default RUN/render/PRESET-SPLIT/scNNNN, from the data)"
+    )
+    r.add_argument(
+        "--force", action="store_true", help="overwrite an output folder that holds files"
+    )
+    r.add_argument(
+        "--allow-preset-mismatch",
+        action="store_true",
+        help="render data of another preset than the run's training data (beyond the "
+        "generalization tests that are always allowed)",
+    )
     r.add_argument("--input-view", type=int, default=0, help="view fed to the encoder")
     r.add_argument("--chunk", type=int, default=4096, help="rays per rendering chunk")
     r.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
@@ -97,16 +126,17 @@ class _UsageError(Exception):
     """A bad command-line input; printed as one line, exit status 2."""
 
 
-def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
-    """Fail fast (before building the model) on a data folder that cannot fit the run."""
+def _read_manifest(data: str, *, required: bool = True) -> dict:
+    """The manifest of split folder ``data`` (``{}`` if it has none and not ``required``)."""
     from scenefmt import read_json
-    from svorf.train import PRESETS
 
     root = Path(data)
     if not root.is_dir():
         raise _UsageError(f"--data {data}: not a directory (expected a generated split folder)")
     manifest = root / "manifest.json"
     if not manifest.is_file():
+        if not required:  # a uORF-layout folder: no metadata to check
+            return {}
         raise _UsageError(
             f"--data {data}: no manifest.json - not a generated split folder "
             f"(run `generate verify {data}`)"
@@ -115,6 +145,14 @@ def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
         meta = read_json(manifest)
     except (OSError, ValueError) as e:
         raise _UsageError(f"{manifest}: unreadable JSON ({e}); run `generate verify {data}`") from e
+    return meta if isinstance(meta, dict) else {}
+
+
+def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
+    """Fail fast (before building the model) on a data folder that cannot fit the run."""
+    from svorf.train import PRESETS
+
+    meta = _read_manifest(data)
     found = meta.get("preset")
     wanted = PRESETS[preset].data_presets
     if found not in wanted:
@@ -211,6 +249,36 @@ def _train_ranked(
     return 0
 
 
+def _check_render_preset(run: str, trained: object, data: str, found: object, allow: bool) -> str:
+    """Refuse rendering data of another preset than the run was trained on (one line),
+    unless it is a generalization test or ``allow``; returns a note for the summary line."""
+    if not isinstance(trained, str) or not isinstance(found, str):
+        return ""  # an old checkpoint or a uORF-layout folder: nothing recorded to compare
+    if found == trained:
+        return ""
+    if found in GENERALIZATION_TEST_DATA.get(trained, ()):
+        return f" (generalization test: {trained} model on {found} data)"
+    if allow:
+        return f" (preset mismatch allowed: {trained} model on {found} data)"
+    raise _UsageError(
+        f"{run} was trained on {trained!r} data but --data {data} holds preset {found!r}; "
+        f"render a {trained} split (e.g. data/{trained}/test) or pass --allow-preset-mismatch"
+    )
+
+
+def _render_dir(run: str, data: str, meta: dict, scene: int) -> Path:
+    """``RUN/render/{preset}-{split}/scNNNN``: one folder per dataset split and scene."""
+    root = Path(data).resolve()
+    preset = meta.get("preset") if isinstance(meta.get("preset"), str) else root.parent.name
+    split = meta.get("split") if isinstance(meta.get("split"), str) else root.name
+    name = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{preset}-{split}").strip("._") or "data"
+    return Path(run) / "render" / name / f"sc{scene:04d}"
+
+
+#: Files ``svorf render`` writes (removed from the output folder first under ``--force``).
+_RENDER_FILES = re.compile(r"(input|grid|v\d\d_\w+)\.png")
+
+
 def _cmd_render(a: argparse.Namespace) -> int:
     from svorf.data import MultiViewDataset
     from svorf.train import load_run, predict_scene, resolve_device
@@ -220,8 +288,24 @@ def _cmd_render(a: argparse.Namespace) -> int:
         raise _UsageError(f"--scene must be >= 0, got {a.scene}")
     if a.chunk < 1:
         raise _UsageError(f"--chunk must be >= 1, got {a.chunk}")
+    meta = _read_manifest(a.data, required=False)
     device = resolve_device(a.device)
     model, info = load_run(a.run, device=device)
+    note = _check_render_preset(
+        a.run, info.dataset.get("preset"), a.data, meta.get("preset"), a.allow_preset_mismatch
+    )
+    out = Path(a.out) if a.out else _render_dir(a.run, a.data, meta, a.scene)
+    if out.exists() and not out.is_dir():
+        raise _UsageError(f"--out {out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        if not a.force:
+            raise _UsageError(
+                f"{out} already holds files (an earlier render?); pass --force to overwrite "
+                f"them or --out DIR to write elsewhere"
+            )
+        for p in out.iterdir():  # only what an earlier render wrote: stale views go too
+            if p.is_file() and _RENDER_FILES.fullmatch(p.name):
+                p.unlink()
     # Render at the training resolution (stored in the run), reading only this scene.
     hw = info.dataset.get("image_hw") or info.model.image_size
     ds = MultiViewDataset(a.data, image_size=hw, scenes=[a.scene])
@@ -229,9 +313,8 @@ def _cmd_render(a: argparse.Namespace) -> int:
         raise _UsageError(f"--input-view must be in [0, {ds.n_views}), got {a.input_view}")
     pos = 0
     pred = predict_scene(model, ds, pos, input_view=a.input_view, chunk=a.chunk)
-    out = Path(a.out) if a.out else Path(a.run) / "render" / f"sc{a.scene:04d}"
     paths = save_scene_figures(pred, ds, pos, out)
-    print(f"svorf render: wrote {len(paths)} PNGs to {out} (grid: {out / 'grid.png'})")
+    print(f"svorf render: wrote {len(paths)} PNGs to {out} (grid: {out / 'grid.png'}){note}")
     return 0
 
 
