@@ -106,21 +106,26 @@ def qualitative_grid(
         ("render", [np.clip(pred_rgb[v], 0, 1) for v in range(n_views)], None),
         ("pred. slots", [label_colors(pred_labels[v]) for v in range(n_views)], None),
         ("GT masks", [label_colors(gt_labels[v]) for v in range(n_views)], None),
-        ("pred. depth", [pred_depth[v] for v in range(n_views)], "viridis"),
+        # One depth convention everywhere (svorf render, generate preview): near = bright
+        # yellow, far = dark, no hit = black; the colour bar says which is which.
+        ("pred. depth", [pred_depth[v] for v in range(n_views)], "viridis_r"),
     ]
     if gt_depth is not None:
         shown = [np.where(finite[v], gt_depth[v], np.nan) for v in range(n_views)]
-        rows.append(("GT depth", shown, "viridis"))
+        rows.append(("GT depth", shown, "viridis_r"))
     fig, axes = plt.subplots(
         len(rows), n_views, figsize=(1.6 * n_views + 0.6, 1.6 * len(rows) + 0.5), squeeze=False
     )
+    depth_im = None
     for r, (name, images, cmap) in enumerate(rows):
         for v in range(n_views):
             ax = axes[r][v]
             if cmap is None:
                 ax.imshow(images[v], interpolation="nearest")
             else:
-                ax.imshow(images[v], cmap=cmap, vmin=lo, vmax=hi, interpolation="nearest")
+                cm = plt.get_cmap(cmap).copy()
+                cm.set_bad("black")
+                depth_im = ax.imshow(images[v], cmap=cm, vmin=lo, vmax=hi, interpolation="nearest")
             ax.set_xticks([])
             ax.set_yticks([])
             if r == 0:
@@ -129,6 +134,10 @@ def qualitative_grid(
                 )
             if v == 0:
                 ax.set_ylabel(name, fontsize=8)
+    if depth_im is not None:
+        bar = fig.colorbar(depth_im, ax=axes[-1].tolist(), fraction=0.04, pad=0.02)
+        bar.set_label("depth (world units): near = yellow, far = dark; black = no hit", fontsize=6)
+        bar.ax.tick_params(labelsize=6)
     fig.suptitle(title, fontsize=9)
     _save(fig, path)
     return path.name

@@ -50,6 +50,7 @@ from benchmark.metrics.lpips import (
     load_lpips_alex,
     lpips_alex,
 )
+from scenefmt import mkstemp_beside
 
 __all__ = [
     "CKPT_MEMBER",
@@ -387,16 +388,13 @@ def _write_atomic(state: dict[str, Tensor], path: Path) -> None:
         raise LPIPSWeightsError(
             f"cannot create {path.parent} ({err}); pass a writable --out or set ${LPIPS_ENV_VAR}"
         ) from err
-    umask = os.umask(0)
-    os.umask(umask)
     tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd, tmp = mkstemp_beside(path)  # the mode a plain open() would give
         with os.fdopen(fd, "wb") as f:
             torch.save(state, f)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~umask)  # what a plain open() would give
         os.replace(tmp, path)
         tmp = None
     except OSError as err:
