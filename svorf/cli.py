@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
 from collections.abc import Sequence
@@ -85,6 +86,14 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--image-size", type=int, help="training resolution (default: the scale's)")
     t.add_argument("--device", help="auto (default), cpu, cuda or cuda:N")
     t.add_argument("--max-scenes", type=int, help="use only the first N scenes")
+    t.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        metavar="M",
+        help="stop after M minutes of training wall time (checkpoint kept; --resume "
+        "continues); with --steps 1000000 this is how `benchmark --train-minutes M` trains",
+    )
     t.add_argument(
         "--init-from",
         metavar="RUN",
@@ -191,6 +200,8 @@ def _cmd_train(a: argparse.Namespace) -> int:
         if a.threads < 1:
             raise _UsageError(f"--threads must be >= 1, got {a.threads}")
         _set_threads(a.threads)
+    if a.minutes is not None and not (a.minutes > 0 and math.isfinite(a.minutes)):
+        raise _UsageError(f"--minutes must be a positive number, got {a.minutes}")
     overrides = {
         k: v
         for k, v in (("steps", a.steps), ("seed", a.seed), ("device", a.device))
@@ -243,6 +254,7 @@ def _train_ranked(
         max_scenes=a.max_scenes,
         progress=not a.no_progress,
         init_from=a.init_from,
+        max_wall_s=None if a.minutes is None else a.minutes * 60.0,
     )
     if main:
         print(json.dumps(summary, indent=2))
