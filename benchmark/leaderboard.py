@@ -2,7 +2,8 @@
 
 Where this sits: ``benchmark leaderboard DIR`` walks ``DIR`` for ``report.json``
 files (every protocol writes one), validates each against the schema, keeps the
-newest row per (protocol, scale, table, model, dataset, source), and writes
+newest row per (protocol, scale, table, model, dataset, source, training seed of a
+measured row), and writes
 ``DIR/leaderboard.json``. The printed table puts every measured and baseline
 row under the paper's rows of the same table.
 """
@@ -71,6 +72,9 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
         for pos, row in enumerate(report["rows"]):
             src = row["source"]
             scale = None if src == "paper" else report["scale"]
+            # Measured rows of different training seeds are different entries (a recipe is
+            # judged at two seeds); baselines and paper rows do not depend on it.
+            seed = report.get("seeds", {}).get("train") if src == "measured" else None
             key = (
                 None if src == "paper" else report["protocol"],
                 scale,
@@ -78,6 +82,7 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
                 row["model"],
                 row["dataset"],
                 src,
+                seed,
             )
             entry = dict(row)
             entry.update(
@@ -88,6 +93,7 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
                 git_commit=report["git"].get("commit"),
                 device=report["hardware"].get("device"),
                 position=pos,
+                seed=seed,
             )
             old = best.get(key)
             if old is None or old["created_utc"] <= entry["created_utc"]:
@@ -102,6 +108,7 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
             e["dataset"],
             src_order[e["source"]],
             e.get("scale") or "",
+            e["seed"] if e["seed"] is not None else -1,
             e["position"],
         ),
     )
@@ -135,6 +142,8 @@ def format_leaderboard(board: dict[str, Any]) -> str:
         body = []
         for r in rows:
             src = r["source"] if r["source"] == "paper" else f"{r['source']}/{r['scale']}"
+            if r.get("seed") is not None:
+                src += f" seed {r['seed']}"
             body.append(
                 [
                     r["model"],
