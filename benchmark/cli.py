@@ -80,6 +80,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--no-progress", action="store_true", help="no progress bars")
     r.add_argument(
+        "--no-train",
+        action="store_true",
+        help="table protocols: train nothing; score only the rows whose models an earlier "
+        "run with the same settings (--out, --scale, --seed, --train-minutes) trained, the "
+        "others stay null with the reason 'not_trained'",
+    )
+    r.add_argument(
         "--backend",
         default="local",
         choices=("local", "ray"),
@@ -170,6 +177,7 @@ def _run(args: argparse.Namespace) -> int:
         only_datasets=only,
         backend=args.backend,
         address=args.address,
+        no_train=args.no_train,
     )
     path = fn(ctx)
     report = json.loads(Path(path).read_text())

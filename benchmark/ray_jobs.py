@@ -148,7 +148,11 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
         jobs: dict[str, Any] = {}
         for spec in specs:
             # A model that starts from another's weights trains after it, in the row loop.
-            if ctx.init_job(spec.job) is None and ctx.model(spec.job, train=False) is None:
+            if (
+                not ctx.no_train
+                and ctx.init_job(spec.job) is None
+                and ctx.model(spec.job, train=False) is None
+            ):
                 jobs.setdefault(ctx.model_key(spec.job)[0], spec.job)
         t = time.perf_counter()
         if jobs:

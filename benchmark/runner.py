@@ -204,6 +204,9 @@ class Context:
             their cache keys (:mod:`benchmark.ray_jobs`).
         address: Ray cluster address (``auto``, ``host:6379``, ``ray://host:10001``;
             None = ``RAY_ADDRESS``, else a new local instance); only with ``ray``.
+        no_train: train nothing: rows whose model has no finished cached run get null
+            metrics with the reason ``not_trained`` (``--no-train``: score the rows whose
+            models an earlier run of the same settings trained).
     """
 
     def __init__(
@@ -223,6 +226,7 @@ class Context:
         only_datasets: list[str] | tuple[str, ...] | None = None,
         backend: str = "local",
         address: str | None = None,
+        no_train: bool = False,
     ) -> None:
         if backend not in BACKENDS:
             raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -230,6 +234,8 @@ class Context:
             raise ValueError("--address is a Ray cluster address; pass it with --backend ray")
         self.backend = backend
         self.address = address
+        #: Only reuse finished cached models; rows whose model is not trained stay null.
+        self.no_train = bool(no_train)
         #: Model keys trained by this run outside this process (Ray workers).
         self.trained_elsewhere: set[str] = set()
         self.protocol = protocol
@@ -959,6 +965,7 @@ def run_table_protocol(
     skipped = 0
     unavailable: list[str] = []
     failed: list[str] = []
+    not_trained: list[str] = []
     for spec in measured:
         rid = row_id(spec.table, spec.model, spec.dataset, "measured")
         try:
@@ -986,7 +993,16 @@ def run_table_protocol(
                 state["records"][(spec.job, spec.dataset)] = rec
             continue
         try:
-            rec = ctx.model(spec.job)
+            rec = ctx.model(spec.job, train=not ctx.no_train)
+            if rec is None:  # --no-train and no finished cached run
+                why = (
+                    f"--no-train: no finished run of model {spec.job.variant} on "
+                    f"{spec.job.train_preset} with these settings; run the same command "
+                    "without --no-train to train it"
+                )
+                not_trained.append(f"{spec.table} / {spec.model} / {spec.dataset}")
+                rows.append(_unavailable_row(spec, why, kind="not_trained"))
+                continue
             res = ctx.evaluation(rec, test)
         except Exception as err:  # noqa: BLE001 - one failing row must not lose the others
             why = f"{type(err).__name__}: {err}".splitlines()[0]
@@ -1019,6 +1035,12 @@ def run_table_protocol(
             0,
             f"{len(failed)} measured row(s) FAILED (metrics null, reason 'failed: ...'; the "
             "command exits non-zero): " + "; ".join(failed),
+        )
+    if not_trained:
+        report["status"] = "partial"
+        ctx.notes.append(
+            "Rows not trained in this run (--no-train; metrics null, reason 'not_trained'): "
+            + "; ".join(not_trained)
         )
     if unavailable:
         report["status"] = "partial"

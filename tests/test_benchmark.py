@@ -417,6 +417,29 @@ def test_room_diverse_model_starts_from_the_clevr567_model(tmp_path):
     assert init["path"] == str((clevr_run / "checkpoint.pt").resolve())
 
 
+def test_no_train_scores_only_cached_models(tmp_path):
+    rows = _tiny_rows()
+    first = Context(
+        "ablation", "smoke", tmp_path / "reports", tmp_path / "data",
+        data_source="synthetic", progress=False, train_steps=2, no_train=True,
+    )  # fmt: skip
+    report = json.loads(run_table_protocol(first, ["tab:ablation"], rows, None).read_text())
+    validate_report(report)
+    measured = [r for r in report["rows"] if r["source"] == "measured"]
+    assert report["status"] == "partial" and not (tmp_path / "reports" / "runs").exists()
+    assert all(v.startswith("not_trained: --no-train") for r in measured
+               for v in r["null_reasons"].values())  # fmt: skip
+    run_table_protocol(_ctx(tmp_path), ["tab:ablation"], rows[:1], None)  # trains one model
+    again = Context(
+        "ablation", "smoke", tmp_path / "reports", tmp_path / "data",
+        data_source="synthetic", progress=False, train_steps=2, no_train=True,
+    )  # fmt: skip
+    report = json.loads(run_table_protocol(again, ["tab:ablation"], rows, None).read_text())
+    by_model = {r["model"]: r for r in report["rows"] if r["source"] == "measured"}
+    assert by_model["sVORF (ours)"]["metrics"]["fg_ari"] is not None
+    assert by_model["sVORF (w/o SA)"]["metrics"]["fg_ari"] is None
+
+
 def test_row_store_ignores_rows_of_another_context(tmp_path):
     a = RowStore(tmp_path, {"scale": "smoke"})
     a.put({"id": "x|y", "v": 1})
