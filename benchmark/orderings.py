@@ -97,7 +97,8 @@ def check_orderings(
 
     Args:
         rows: the report's rows (paper, measured, baseline).
-        orderings: the comparisons of the report's tables.
+        orderings: the comparisons of the report's tables; one whose row A is not in
+            ``rows`` at all (a table or dataset the report leaves out) is skipped.
         seed_rows: optional rows of other seeds' reports of the same protocol, by seed; the
             spread of ``A - B`` over the seeds is then reported.
 
@@ -106,11 +107,11 @@ def check_orderings(
         paper), paper_holds, measured_holds (null when a value is missing), margin (A - B,
         measured), seed_spread and its reason when null.
     """
-    tables = {r["table"] for r in rows}
+    present = {(r["table"], r["model"], r["dataset"]) for r in rows}
     out = []
     for o in orderings:
-        if o.table not in tables:
-            continue
+        if (o.table, o.a_model, o.a_dataset) not in present:
+            continue  # a table or dataset this report leaves out (e.g. --datasets)
         a_meas = _value(rows, o.table, o.a_model, o.a_dataset, "measured", o.metric)
         a_paper = _value(rows, o.table, o.a_model, o.a_dataset, "paper", o.metric)
         if o.b_source == "baseline":
