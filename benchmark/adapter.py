@@ -9,7 +9,7 @@ benchmark needs from svorf:
   plus :func:`config_dict` to store them as JSON; both start from
   :func:`base_configs`, the one place that picks svorf's configs per scale
   (the ``cpu`` scale trains the CLEVR-567 family with the cpu recipe,
-  ``svorf.recipe.recipe_configs``, docs/cpu_recipe.md);
+  ``svorf.recipe.recipe_configs``, docs/notes/cpu_recipe.md);
 - training: :func:`train` (resumable, into a run folder, optionally with a
   wall-clock budget) and :func:`load_model`;
 - evaluation: :func:`open_dataset`, :func:`ground_truth`, :func:`predict_scene`

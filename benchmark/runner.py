@@ -552,7 +552,7 @@ class Context:
         if recipe:
             self.notes.append(
                 f"The '{self.scale}' scale trains the CLEVR-567-family models with the cpu "
-                f"recipe (svorf.train.CPU_RECIPE, docs/cpu_recipe.md): {', '.join(recipe)}; "
+                f"recipe (svorf.train.CPU_RECIPE, docs/notes/cpu_recipe.md): {', '.join(recipe)}; "
                 "the ablation variants are applied on top of it."
             )
         for m in self.models.values():

@@ -211,7 +211,7 @@ class ModelConfig:
     receive at most about one fine sample, so thresholds below that save little. None =
     off: every fine sample evaluated (paper)."""
 
-    # ---- cpu-scale training recipe (docs/cpu_recipe.md; all off at paper scale) ----
+    # ---- cpu-scale training recipe (docs/notes/cpu_recipe.md; all off at paper scale) ----
     fg_zmin: float | None = None
     """If set, foreground (object) slots have density 0 and composition weight 0 below the
     height z = fg_zmin (world units, z up; datasets put the floor at z = 0), so the floor
@@ -257,7 +257,7 @@ class ModelConfig:
     same, but the weights are that layer's attention logits normalised over the *slots*
     (every token shared out among the slots, as in Slot Attention), then over the tokens:
     slots compete for image regions, so their centres cannot all sit on the same spot
-    (with "attention" they did: measured in docs/cpu_recipe.md). The decoder itself is
+    (with "attention" they did: measured in docs/notes/cpu_recipe.md). The decoder itself is
     unchanged. "anchored": c_k = a_k + (e / 2) tanh(Linear(s_k)), the learned map of
     "learned" as an offset (up to e / 2 per axis) from a fixed anchor a_k per foreground
     slot: the K-1 anchors lie on a sunflower (Fibonacci) disk of radius 0.6 e at height

@@ -30,7 +30,7 @@ bg bandwidth        ``ModelConfig.bg_pos_freqs_xyz``             None (lever row
 frame) is not a recipe lever: it is the default at every scale (uORF's convention); the
 recipe runs compare it with ``"world"`` (``--coord-frame``).
 
-Measurements and the recommended command are in docs/cpu_recipe.md.
+Measurements and the recommended command are in docs/notes/cpu_recipe.md.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ __all__ = [
 #: ``benchmark.metrics.segmentation_metrics``).
 SegMetricsFn = Callable[[Tensor, Tensor, int], dict[str, Tensor]]
 
-#: The recipe's choices on top of the plain cpu scale (docs/cpu_recipe.md): model fields
+#: The recipe's choices on top of the plain cpu scale (docs/notes/cpu_recipe.md): model fields
 #: and train fields. It lives in svorf's scale registry (``svorf.train.CPU_RECIPE``), so
 #: ``svorf train --scale cpu`` and ``benchmark --scale cpu`` train the same model;
 #: ``recipe_configs(levers=...)`` overrides entries.

@@ -133,7 +133,7 @@ class TrainConfig:
     the rays from image tiles in proportion to the model's recent error there
     (``svorf.data.ErrorMap``; label-free, its state is checkpointed)."""
     nvs_warmup: int = 0
-    """Input-view reconstruction warm-up (cpu recipe, docs/cpu_recipe.md): for the first
+    """Input-view reconstruction warm-up (cpu recipe, docs/notes/cpu_recipe.md): for the first
     this many steps the target rays come from the input view itself, afterwards from the
     other views (novel-view supervision, when ``ModelConfig.nvs``). 0 = paper (novel views
     from step 0)."""
@@ -288,7 +288,7 @@ def train_config(scale: str, preset: str = "clevr567", **overrides: Any) -> Trai
     return base.replace(**overrides)
 
 
-#: The cpu recipe (docs/cpu_recipe.md): what the ``cpu`` scale changes on top of
+#: The cpu recipe (docs/notes/cpu_recipe.md): what the ``cpu`` scale changes on top of
 #: :func:`train_config` / ``svorf.config.model_config`` for the CLEVR-567 family
 #: (:data:`CPU_RECIPE_PRESETS`). Model fields are in :data:`CPU_RECIPE_MODEL_FIELDS`; the
 #: rest are TrainConfig fields. Every item is a documented config field that the
@@ -304,7 +304,7 @@ CPU_RECIPE: dict[str, Any] = {
     "comp_temperature": 1.0,
     "coord_frame": "input_azimuth",
     "slot_locality": 1.0,
-    # Anchored centres (docs/cpu_recipe.md, rows L, L0): "learned" centres collapsed onto
+    # Anchored centres (docs/notes/cpu_recipe.md, rows L, L0): "learned" centres collapsed onto
     # one spot at seed 1; anchored ones cannot, and matched or beat them at seeds 0 and 1.
     "slot_centre": "anchored",
 }

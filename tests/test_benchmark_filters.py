@@ -249,6 +249,6 @@ def test_a_cpu_report_says_its_models_train_with_the_cpu_recipe(tmp_path):
     report = ctx.base_report()
     report.update(rows=paper_rows("tab:seg"), verdicts=[], figures=[])
     report = json.loads(ctx.finish(report).read_text())
-    assert any("cpu recipe" in n and "docs/cpu_recipe.md" in n for n in report["notes"])
+    assert any("cpu recipe" in n and "docs/notes/cpu_recipe.md" in n for n in report["notes"])
     assert any("8 render samples (nominal 16)" in n for n in report["notes"])
     assert report["models"][0]["config_source"] == adapter.RECIPE_CONFIG_SOURCE

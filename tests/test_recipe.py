@@ -1,4 +1,4 @@
-"""The cpu recipe's levers (svorf/recipe.py, docs/cpu_recipe.md): each new config field
+"""The cpu recipe's levers (svorf/recipe.py, docs/notes/cpu_recipe.md): each new config field
 changes the computation it names, the paper scale has them all off, and the time-budgeted
 driver stops, resumes and evaluates."""
 
