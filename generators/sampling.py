@@ -45,8 +45,12 @@ from generators.spec import (
 
 MAX_SCENES_PER_SPLIT = 100_000
 _MAX_LAYOUT_RESTARTS = 10_000
-#: The sentinel pixel (0, 0) must be background at every output resolution >= 16:
-#: every such pixel centre lies in the top-left 1/32 x 1/32 of the image.
+#: The ``_mask.png`` sentinel block must be background at every output resolution
+#: R >= 16. It is ``b x b`` top-left pixels with ``b = scenefmt.sentinel_size(R, R)``:
+#: b = 1 (pixel (0, 0), centre at 0.5 / R <= 1/32) for R < 128, and
+#: b = R // 128 + 1 <= R / 32 for R >= 128, so the whole block lies in the top-left
+#: 1/32 x 1/32 of the image, the corner region checked here by a 5x5 ray grid
+#: (``tests/test_sampling.py`` checks this for R = 16 .. 4096).
 _CORNER_FRACTION = 1.0 / 32.0
 
 
@@ -309,8 +313,8 @@ def visibility_problems(spec: SceneSpec, preset: Preset) -> list[str]:
 
     Rules: in a ``preset.visibility_resolution`` square ray cast of view 0 every
     object covers at least ``preset.min_pixels`` pixels; in every view the top-left
-    corner region (which holds pixel (0, 0), the uORF mask sentinel, at any
-    resolution >= 16) sees background only.
+    corner region (which holds the uORF mask sentinel block, ``scenefmt.sentinel_size``,
+    at any resolution >= 16) sees background only.
     """
     problems = []
     meshes = spec.meshes()

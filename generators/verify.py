@@ -3,10 +3,14 @@
 Data flow: split folder on disk -> :func:`verify_split` -> list of problems (empty =
 valid). Reads only through ``scenefmt``; needs no bpy. Checks, per scene and view:
 every file present; RGB uint8 [R, R, 3] at the manifest resolution; instance ids
-uint8 [R, R], a subset of the scene JSON's instance ids, with pixel (0, 0) = 0;
-``_mask.png`` equal to ``uorf_mask_from_instances(ids)`` and obeying the uORF rule
-(after PIL ``convert('L')`` the second-lowest grey level is the background level and
-covers exactly the id-0 pixels other than the sentinel); depth float32 [R, R],
+uint8 [R, R], a subset of the scene JSON's instance ids, with the top-left sentinel
+block (``scenefmt.sentinel_size``) = 0; ``_mask.png`` equal to
+``uorf_mask_from_instances(ids)`` and obeying the uORF rule (after PIL
+``convert('L')`` the second-lowest grey level is the background level and covers
+exactly the id-0 pixels other than the sentinel block), also after uORF's PIL NEAREST
+resize to its ``mask_size`` (checked at 64, 96, 128 and R, those in [64, R]: the
+second-lowest level covers exactly the equally resized id-0 pixels other than the
+sentinel's); depth float32 [R, R],
 finite and positive wherever geometry was hit (every pixel here: the ground
 is hit everywhere; objects always), never NaN; ``_RT.txt`` / ``_azi_rot.txt`` equal to
 the JSON camera; no stray ``*.png`` that the uORF loader would take for a view.
@@ -22,12 +26,15 @@ from PIL import Image
 from generators import geometry
 from scenefmt import (
     MASK_BG_LEVEL,
+    MASK_SENTINEL_LEVEL,
+    MIN_UORF_MASK_SIZE,
     SplitLayout,
     read_depth_exr,
     read_instances,
     read_json,
     read_matrix_txt,
     read_rgb,
+    sentinel_size,
     uorf_mask_from_instances,
 )
 
@@ -45,6 +52,49 @@ def uorf_background_level(mask_path: str | Path) -> int:
     if len(levels) < 2:
         raise ValueError(f"{mask_path}: only {len(levels)} grey level(s); uORF needs >= 2")
     return int(levels[1])
+
+
+#: uORF ``mask_size`` values :func:`uorf_resize_problem` tries (those in [64, R]), plus R.
+UORF_CHECK_MASK_SIZES = (MIN_UORF_MASK_SIZE, 96, 128)
+
+
+def uorf_resize_problem(mask_path: str | Path, ids: np.ndarray) -> str | None:
+    """Whether uORF's background rule survives its resize of ``_mask.png``.
+
+    As uORF's loader does: ``convert('L')``, PIL NEAREST resize to ``(n, n)`` for each
+    ``n`` of ``UORF_CHECK_MASK_SIZES`` within ``[64, R]`` and ``n = R``; the
+    second-lowest grey level must be exactly where the equally resized instance ids
+    are 0, except the (resized) sentinel pixels.
+
+    Args:
+        mask_path: the view's ``_mask.png``.
+        ids: uint8 [R, R] instance ids of the view.
+
+    Returns:
+        None when it holds, else a one-line problem naming the first failing size.
+    """
+    r = max(ids.shape)
+    sizes = sorted({n for n in UORF_CHECK_MASK_SIZES if n <= r} | ({r} if r >= 64 else set()))
+    if not sizes:
+        return None
+    with Image.open(mask_path) as im:
+        mask_l = im.convert("RGB").convert("L")
+    ids_im = Image.fromarray(np.ascontiguousarray(ids, dtype=np.uint8))
+    for n in sizes:
+        m = np.asarray(mask_l.resize((n, n), Image.Resampling.NEAREST))
+        bg_ids = np.asarray(ids_im.resize((n, n), Image.Resampling.NEAREST)) == 0
+        levels = np.unique(m)
+        if len(levels) < 2:
+            return f"only {len(levels)} grey level(s) after uORF's resize to mask_size {n}"
+        bgpix = m == levels[1]
+        want = bg_ids & (m != MASK_SENTINEL_LEVEL)
+        if not np.array_equal(bgpix, want):
+            return (
+                f"uORF's background rule fails after its NEAREST resize to mask_size {n} "
+                f"(second-lowest level {int(levels[1])} covers {int(bgpix.sum())} pixels, "
+                f"id 0 {int(want.sum())}; sentinel lost?)"
+            )
+    return None
 
 
 def _view_problems(layout: SplitLayout, meta: dict, s: int, v: int, res: int) -> list[str]:
@@ -65,21 +115,28 @@ def _view_problems(layout: SplitLayout, meta: dict, s: int, v: int, res: int) ->
         extra = set(np.unique(ids).tolist()) - {0} - ids_json
         if extra:
             out.append(f"instances/{stem}.png: ids {sorted(extra)} not in sc{s:04d}.json objects")
-        if ids[0, 0] != 0:
-            out.append(f"instances/{stem}.png: pixel (0, 0) is {ids[0, 0]}, must be background")
+        b = sentinel_size(*ids.shape)
+        if ids[:b, :b].any():
+            out.append(
+                f"instances/{stem}.png: the top-left {b}x{b} sentinel block must be background"
+            )
             return out
         mask = read_instances(layout.mask(s, v))
         if mask.shape != ids.shape or not np.array_equal(mask, uorf_mask_from_instances(ids)):
-            out.append(f"{stem}_mask.png: does not match instances/{stem}.png")
+            out.append(f"{stem}_mask.png: does not match uorf_mask_from_instances("
+                       f"instances/{stem}.png) (a {b}x{b} sentinel block at {res} px)")  # fmt: skip
         else:
             bg = uorf_background_level(layout.mask(s, v))
             if bg != MASK_BG_LEVEL:
                 out.append(f"{stem}_mask.png: uORF background level {bg} != {MASK_BG_LEVEL}")
             bgpix = mask == bg
             want = ids == 0
-            want[0, 0] = False
+            want[:b, :b] = False
             if not np.array_equal(bgpix, want):
                 out.append(f"{stem}_mask.png: uORF background pixels differ from id-0 pixels")
+        why = uorf_resize_problem(layout.mask(s, v), ids)
+        if why is not None:
+            out.append(f"{stem}_mask.png: {why}")
         depth = read_depth_exr(layout.depth(s, v))
         if depth.shape != (res, res) or depth.dtype != np.float32:
             out.append(

@@ -90,6 +90,7 @@ def manifest(
             "instance_ids": "uint8, 0 = background (ground), k = objects[k-1] of sc%04d.json",
             "mask": {
                 "sentinel_pixel": [0, 0],
+                "sentinel_block": scenefmt.sentinel_size(int(resolution), int(resolution)),
                 "sentinel_level": scenefmt.MASK_SENTINEL_LEVEL,
                 "background_level": scenefmt.MASK_BG_LEVEL,
                 "object_level": f"{scenefmt.MASK_BG_LEVEL} + 18 * instance_id",

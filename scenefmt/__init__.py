@@ -10,6 +10,7 @@ Layout of one split folder (e.g. ``data/clevr567/train/``)::
     {stem}_RT.txt                                    4x4 camera-to-world, OpenCV axes
     {stem}_azi_rot.txt                               3x3 rotation about world z by the azimuth
     {stem}_mask.png                                  uORF-compatible grey-level mask
+                                                     (sentinel block, ``sentinel_size``)
     instances/{stem}.png                             8-bit instance ids, 0 = background
     depth/{stem}.exr                                 float32 planar depth (camera z), world units
     sc{scene:04d}.json                               full scene record (written last)
@@ -38,9 +39,11 @@ from scenefmt.layout import (
     FORMAT_VERSION,
     MASK_BG_LEVEL,
     MASK_SENTINEL_LEVEL,
+    MIN_UORF_MASK_SIZE,
     SplitLayout,
     instances_from_uorf_mask,
     is_scene_complete,
+    sentinel_size,
     uorf_mask_from_instances,
 )
 
@@ -48,6 +51,7 @@ __all__ = [
     "FORMAT_VERSION",
     "MASK_BG_LEVEL",
     "MASK_SENTINEL_LEVEL",
+    "MIN_UORF_MASK_SIZE",
     "SplitLayout",
     "atomic_write_bytes",
     "atomic_write_json",
@@ -60,6 +64,7 @@ __all__ = [
     "read_json",
     "read_matrix_txt",
     "read_rgb",
+    "sentinel_size",
     "uorf_mask_from_instances",
     "write_depth_exr",
     "write_instances",

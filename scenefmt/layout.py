@@ -9,15 +9,20 @@ from pathlib import Path
 import numpy as np
 
 #: Bumped whenever a file name, dtype or convention changes (see CHANGELOG.md).
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"
 
 #: ``_mask.png`` grey levels. The uORF loader takes the background to be the
 #: *second-lowest* grey level of the mask after ``convert('L')``. To make that rule
-#: hold in every view (even a view with no visible object) one sentinel pixel, the
-#: top-left pixel (0, 0), which our cameras always see as background, is written at
-#: level 0; the background is level ``MASK_BG_LEVEL``; object ``k`` (1-based
-#: instance id) is ``MASK_BG_LEVEL + k * MASK_STEP``. The lossless instance ids in
-#: ``instances/`` do not carry the sentinel.
+#: hold in every view (even a view with no visible object) a sentinel block, the
+#: top-left ``b x b`` pixels with ``b = sentinel_size(H, W)`` (``H // 128 + 1`` for a
+#: square view: 1 below 128 px, 2 at 128, 3 at 256, 5 at 512, 9 at 1024), which our
+#: cameras always see as background, is written at level 0; the background is level
+#: ``MASK_BG_LEVEL``; object ``k`` (1-based instance id) is
+#: ``MASK_BG_LEVEL + k * MASK_STEP``. The block is a single pixel (0, 0) below 128 px;
+#: above it is bigger so that uORF's PIL NEAREST resize to its ``mask_size`` (64 .. the
+#: split's resolution) still samples it at output pixel (0, 0): a lone pixel is dropped
+#: there, and the second-lowest level would then be an object. The lossless instance
+#: ids in ``instances/`` do not carry the sentinel.
 MASK_SENTINEL_LEVEL = 0
 MASK_BG_LEVEL = 16
 MASK_STEP = 18
@@ -117,30 +122,60 @@ def is_scene_complete(layout: SplitLayout, scene: int) -> bool:
     return all(p.is_file() for p in reversed(layout.scene_files(scene)))
 
 
+#: uORF's smallest mask size that :func:`sentinel_size` covers (its default is 128).
+MIN_UORF_MASK_SIZE = 64
+
+
+def sentinel_size(h: int, w: int) -> int:
+    """Side ``b`` of the top-left sentinel block of a ``[h, w]`` ``_mask.png``.
+
+    The smallest ``b`` such that PIL NEAREST resizing (what uORF's loader does to
+    ``mask_size``) to any size from ``MIN_UORF_MASK_SIZE`` up to ``max(h, w)`` takes
+    output pixel (0, 0) from inside the ``b x b`` block: PIL samples source index
+    ``floor((0 + 0.5) * n_in / n_out)``, at most ``n_in // 128`` for ``n_out >= 64``, so
+    ``b = max(h, w) // 128 + 1`` (1 below 128 px, so those files keep a single sentinel
+    pixel; 2 at 128, 3 at 256, 5 at 512, 9 at 1024).
+
+    Args:
+        h, w: the mask's height and width in pixels (>= 1).
+    """
+    if h < 1 or w < 1:
+        raise ValueError(f"mask size must be >= 1 x 1, got {h} x {w}")
+    return max(int(h), int(w)) // (2 * MIN_UORF_MASK_SIZE) + 1
+
+
 def uorf_mask_from_instances(ids: np.ndarray) -> np.ndarray:
     """Build the uORF-compatible grey mask from instance ids.
 
     Args:
-        ids: uint8 [H, W], 0 = background, k >= 1 = object k.
+        ids: uint8 [H, W], 0 = background, k >= 1 = object k; the top-left
+            ``b x b`` block (``b = sentinel_size(H, W)``) must be background.
 
     Returns:
-        uint8 [H, W]: sentinel 0 at pixel (0, 0), background ``MASK_BG_LEVEL``,
-        object k at ``MASK_BG_LEVEL + k * MASK_STEP``.
+        uint8 [H, W]: sentinel ``MASK_SENTINEL_LEVEL`` on the top-left ``b x b`` block,
+        background ``MASK_BG_LEVEL``, object k at ``MASK_BG_LEVEL + k * MASK_STEP``.
     """
     ids = np.asarray(ids)
     if ids.ndim != 2:
         raise ValueError(f"ids must be [H, W], got shape {ids.shape}")
     if ids.max(initial=0) > MAX_INSTANCES:
         raise ValueError(f"at most {MAX_INSTANCES} instances fit the mask, got id {ids.max()}")
-    if ids[0, 0] != 0:
-        raise ValueError("pixel (0, 0) must be background for the uORF mask sentinel")
+    b = sentinel_size(*ids.shape)
+    if np.any(ids[:b, :b] != 0):
+        raise ValueError(
+            f"the top-left {b}x{b} block must be background for the uORF mask sentinel"
+        )
     mask = (MASK_BG_LEVEL + ids.astype(np.int32) * MASK_STEP).astype(np.uint8)
-    mask[0, 0] = MASK_SENTINEL_LEVEL
+    mask[:b, :b] = MASK_SENTINEL_LEVEL
     return mask
 
 
 def instances_from_uorf_mask(mask: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`uorf_mask_from_instances` (the sentinel reads as background)."""
+    """Inverse of :func:`uorf_mask_from_instances`: uint8 [H, W] mask -> uint8 [H, W] ids.
+
+    The sentinel (level ``MASK_SENTINEL_LEVEL``, a single pixel (0, 0) or the
+    ``sentinel_size`` block) reads as background.
+    """
     mask = np.asarray(mask).astype(np.int32)
     ids = (mask - MASK_BG_LEVEL) // MASK_STEP
     ids[mask < MASK_BG_LEVEL] = 0

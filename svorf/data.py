@@ -65,6 +65,7 @@ from scenefmt import (
     read_json,
     read_matrix_txt,
     read_rgb,
+    sentinel_size,
 )
 
 __all__ = [
@@ -637,13 +638,20 @@ def _uorf_ids(levels: list[np.ndarray | None], h: int, w: int) -> np.ndarray:
     """Instance ids [V, H, W] from uORF grey masks with the uORF background rule.
 
     Per view the background is the *second-lowest* grey level (uORF's loader); every
-    other level is an object, with one exception: a level that occupies only pixel
-    (0, 0) of a view is our writer's sentinel (``scenefmt.MASK_SENTINEL_LEVEL``, there
-    so that the second-lowest rule holds) and reads as background. uORF's own loader
-    would see it as a one-pixel object. Ids 1..n follow the sorted union of object
-    levels over the scene's views, so one object keeps its id across views (assumes a
-    grey level means the same object in every view of a scene, as in uORF's data).
-    Views without a mask read as all background.
+    other level is an object, with one exception: when the lowest level holds pixel
+    (0, 0) and occupies only pixels of the top-left ``b x b`` block
+    (``b = scenefmt.sentinel_size(h, w)`` of that view's mask) it is our writer's
+    sentinel (``scenefmt.MASK_SENTINEL_LEVEL``, there so that the second-lowest rule
+    holds) and reads as background. That covers the whole block (format >= 1.1) and
+    the single pixel (0, 0) of format 1.0 files. uORF's own loader would see it as a
+    small object. Ids 1..n follow the sorted union of object levels over the scene's
+    views, so one object keeps its id across views (assumes a grey level means the
+    same object in every view of a scene, as in uORF's data). Views without a mask
+    read as all background.
+
+    Args:
+        levels: per view a uint8 [h, w] grey mask (after ``convert('L')``) or None.
+        h, w: the views' image size (each mask is [h, w]).
     """
     out = np.zeros((len(levels), h, w), dtype=np.uint8)
     bgs: list[set[int] | None] = []
@@ -652,11 +660,14 @@ def _uorf_ids(levels: list[np.ndarray | None], h: int, w: int) -> np.ndarray:
         if m is None:
             bgs.append(None)
             continue
-        uniq, counts = np.unique(m, return_counts=True)
+        uniq = np.unique(m)
         bg = {int(uniq[1] if len(uniq) > 1 else uniq[0])}
         corner = int(m[0, 0])
-        if len(uniq) > 1 and corner == int(uniq[0]) and int(counts[0]) == 1:
-            bg.add(corner)  # the sentinel pixel
+        if len(uniq) > 1 and corner == int(uniq[0]):
+            b = sentinel_size(*m.shape)
+            low = m == corner
+            if int(low.sum()) == int(low[:b, :b].sum()):
+                bg.add(corner)  # the sentinel block (or format 1.0's pixel (0, 0))
         bgs.append(bg)
         fg_levels.update(int(u) for u in uniq if int(u) not in bg)
     lut = {lv: k + 1 for k, lv in enumerate(sorted(fg_levels))}

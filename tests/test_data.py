@@ -15,6 +15,7 @@ from svorf.data import (
     ErrorMap,
     MultiViewDataset,
     RaySampler,
+    _uorf_ids,
     dataset_fingerprint,
     pixel_rays,
     rays_at,
@@ -268,6 +269,31 @@ def test_uorf_layout_reader(split, ds):
     flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
     torch.testing.assert_close(gl[0].cam_to_world, so.cam_to_world @ flip)
     torch.testing.assert_close(gl[0].K[0, 0, 0], gl[0].K[0, 1, 1])
+
+
+@pytest.mark.parametrize("res", [64, 128, 256])
+def test_uorf_ids_read_sentinel_block_and_old_single_pixel_as_background(res):
+    """Format 1.1 masks (b x b sentinel block) and format 1.0 ones (pixel (0, 0) only)
+    both read back as the instance ids; a low level outside the block stays an object."""
+    from scenefmt import MASK_SENTINEL_LEVEL, sentinel_size, uorf_mask_from_instances
+
+    ids = np.zeros((res, res), np.uint8)
+    ids[res // 4 : res // 2, res // 3 : res // 2] = 1
+    ids[res // 2 :, : res // 3] = 2
+    new = uorf_mask_from_instances(ids)
+    old = new.copy()
+    b = sentinel_size(res, res)
+    old[:b, :b] = new[b, b]  # background level
+    old[0, 0] = MASK_SENTINEL_LEVEL
+    got = _uorf_ids([new, old, None], res, res)
+    assert got.shape == (3, res, res) and got.dtype == np.uint8
+    np.testing.assert_array_equal(got[0], ids)
+    np.testing.assert_array_equal(got[1], ids)
+    assert not got[2].any()
+    # the lowest level reaching past the block is an object (uORF's rule), not a sentinel
+    odd = new.copy()
+    odd[:b, : b + 1] = MASK_SENTINEL_LEVEL
+    assert _uorf_ids([odd], res, res)[0][0, b] > 0
 
 
 def test_synthetic_split_is_deterministic(tmp_path):

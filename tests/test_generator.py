@@ -13,7 +13,18 @@ from generators import cli
 from generators.pipeline import GenerateConfig, generate_dataset
 from generators.testing import write_raycast_split
 from generators.verify import verify_split
-from scenefmt import SplitLayout, read_json, write_instances, write_rgb
+from scenefmt import (
+    MASK_BG_LEVEL,
+    MASK_SENTINEL_LEVEL,
+    SplitLayout,
+    atomic_write_json,
+    read_instances,
+    read_json,
+    uorf_mask_from_instances,
+    write_instances,
+    write_mask,
+    write_rgb,
+)
 
 
 @pytest.fixture(scope="module")
@@ -138,6 +149,54 @@ def test_verify_finds_problems(split, tmp_path, damage, capsys):
     problems = verify_split(d)
     assert problems, damage
     assert cli.main(["verify", str(d)]) != 0
+
+
+@pytest.fixture(scope="module")
+def split256(tmp_path_factory):
+    return write_raycast_split(tmp_path_factory.mktemp("gen256") / "train", n=1, resolution=256)
+
+
+def test_verify_passes_at_256_and_catches_a_one_pixel_sentinel(split256, tmp_path):
+    """At 256 px the sentinel is a 3x3 block; a format 1.0 mask (pixel (0, 0) only) loses
+    its sentinel in uORF's NEAREST resize to mask_size 128 (or 64), and verify says so."""
+    assert verify_split(split256) == []
+    assert read_json(split256 / "manifest.json")["conventions"]["mask"]["sentinel_block"] == 3
+    d = _copy(split256, tmp_path)
+    layout = SplitLayout(d)
+    ids = read_instances(layout.instances(0, 2))
+    old = uorf_mask_from_instances(ids)
+    old[:3, :3] = MASK_BG_LEVEL
+    old[0, 0] = MASK_SENTINEL_LEVEL
+    write_mask(layout.mask(0, 2), old)
+    problems = verify_split(d)
+    assert any("00002_sc0000_az02_mask.png" in p and "resize to mask_size" in p for p in problems)
+    assert all("\n" not in p for p in problems)
+
+
+def test_format_1_0_split_at_64_px_verifies_and_resumes(tmp_path, monkeypatch):
+    """A 64 px split written by format 1.0 (single sentinel pixel, no sentinel_block
+    key) is byte-identical in its masks, passes verify and resumes (skips its scenes)."""
+    import generators.blender_backend as bb
+
+    d = write_raycast_split(tmp_path / "train", n=2, resolution=64)
+    layout = SplitLayout(d)
+    for s_ in range(2):
+        for v in range(4):
+            ids = read_instances(layout.instances(s_, v))
+            want = (MASK_BG_LEVEL + ids.astype(np.int32) * 18).astype(np.uint8)
+            want[0, 0] = MASK_SENTINEL_LEVEL
+            np.testing.assert_array_equal(read_instances(layout.mask(s_, v)), want)
+    m = read_json(d / "manifest.json")
+    assert m["conventions"]["mask"]["sentinel_block"] == 1
+    m["format_version"] = "1.0"
+    del m["conventions"]["mask"]["sentinel_block"]
+    atomic_write_json(d / "manifest.json", m)
+    assert verify_split(d) == []
+    monkeypatch.setattr(bb, "bpy_available", lambda: False)
+    s = generate_dataset(GenerateConfig(preset="clevr567", n=2, out=d, resolution=64,
+                                        samples=1, denoise=False, progress=False))  # fmt: skip
+    assert s.scenes_this_run == 0 and s.scenes_skipped == 2
+    assert verify_split(d) == []
 
 
 def test_manifest_and_scene_json_contents(split):

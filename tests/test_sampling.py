@@ -12,8 +12,15 @@ import pytest
 from generators import geometry
 from generators.presets import CLEVR_COLORS, CLEVR_SIZES, PRESETS, get_preset
 from generators.raycast import cast_view
-from generators.sampling import attempt_rng, make_scene, sample_scene, scene_seed
+from generators.sampling import (
+    _CORNER_FRACTION,
+    attempt_rng,
+    make_scene,
+    sample_scene,
+    scene_seed,
+)
 from generators.spec import SceneSpec
+from scenefmt import sentinel_size
 
 P = get_preset("clevr567")
 
@@ -80,15 +87,29 @@ def test_lights_and_cameras(scenes):
         assert len(set(azis)) == 4
 
 
-@pytest.mark.parametrize("res", [16, 32, 128])
+@pytest.mark.parametrize("res", [16, 32, 128, 256])
 def test_visibility_rules(scenes, res):
+    b = sentinel_size(res, res)
     for s in scenes[:3]:
         for v in range(4):
             ids = cast_view(s, v, res).ids
-            assert ids[0, 0] == 0, "sentinel pixel must be background"
+            assert not ids[:b, :b].any(), "the sentinel block must be background"
         if res == 128:
             counts = np.bincount(cast_view(s, 0, P.visibility_resolution).ids.ravel(), minlength=16)
             assert all(counts[o.instance_id] >= P.min_pixels for o in s.objects)
+
+
+def test_sentinel_block_lies_in_the_checked_corner():
+    """The sampler's background corner (top-left 1/32 x 1/32) holds the whole sentinel
+    block at every resolution >= 16: pixel (0, 0)'s centre below 128 px, all b x b
+    pixels (b <= R / 32) from 128 px up."""
+    for r in range(16, 4097):
+        b = sentinel_size(r, r)
+        assert (b - 0.5) / r <= _CORNER_FRACTION, r
+        if r < 128:
+            assert b == 1, r
+        else:
+            assert b <= r / 32, r
 
 
 def test_json_round_trip(scenes):

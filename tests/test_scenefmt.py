@@ -6,6 +6,7 @@ from PIL import Image
 
 from scenefmt import (
     MASK_BG_LEVEL,
+    MASK_SENTINEL_LEVEL,
     SplitLayout,
     atomic_write_json,
     instances_from_uorf_mask,
@@ -15,6 +16,7 @@ from scenefmt import (
     read_json,
     read_matrix_txt,
     read_rgb,
+    sentinel_size,
     uorf_mask_from_instances,
     write_depth_exr,
     write_instances,
@@ -53,6 +55,64 @@ def test_mask_rejects_object_on_sentinel_pixel():
     ids = np.ones((4, 4), np.uint8)
     with pytest.raises(ValueError, match="sentinel"):
         uorf_mask_from_instances(ids)
+
+
+def _nearest_keeps_block(r: int, b: int) -> bool:
+    """PIL NEAREST (uORF's mask resize) of an r x r mask whose top-left b x b block is
+    level 0 (rest 16) keeps level 0 at output pixel (0, 0) for every size 64..r."""
+    m = np.full((r, r), 16, np.uint8)
+    m[:b, :b] = 0
+    im = Image.fromarray(m)
+    return all(
+        np.asarray(im.resize((n, n), Image.Resampling.NEAREST))[0, 0] == 0 for n in range(64, r + 1)
+    )
+
+
+@pytest.mark.parametrize("r", [64, 100, 128, 256, 512])
+def test_sentinel_size_is_the_smallest_block_pil_nearest_keeps(r):
+    """Brute force against PIL's own NEAREST at every output size 64..r (96, 100, 200 and
+    other non-divisors included)."""
+    b = sentinel_size(r, r)
+    assert _nearest_keeps_block(r, b)
+    assert b == 1 or not _nearest_keeps_block(r, b - 1)
+    assert b == r // 128 + 1
+
+
+def test_sentinel_size_values_and_non_square():
+    sizes = (16, 32, 64, 100, 127, 128, 256, 512, 1024)
+    want = (1, 1, 1, 1, 1, 2, 3, 5, 9)
+    assert tuple(sentinel_size(r, r) for r in sizes) == want
+    assert sentinel_size(96, 300) == sentinel_size(300, 96) == sentinel_size(300, 300) == 3
+    with pytest.raises(ValueError, match="mask size"):
+        sentinel_size(0, 4)
+
+
+@pytest.mark.parametrize("r", [4, 16, 32, 64, 100, 127])
+def test_mask_below_128_px_is_format_1_0_single_pixel(r):
+    """Below 128 px the sentinel stays the one pixel (0, 0): files are byte-identical
+    to format 1.0."""
+    rng = np.random.default_rng(r)
+    ids = rng.integers(0, 4, (r, r)).astype(np.uint8)
+    ids[0, 0] = 0
+    old = (MASK_BG_LEVEL + ids.astype(np.int32) * 18).astype(np.uint8)
+    old[0, 0] = MASK_SENTINEL_LEVEL
+    np.testing.assert_array_equal(uorf_mask_from_instances(ids), old)
+
+
+def test_mask_sentinel_block_at_256_and_round_trip():
+    ids = np.zeros((256, 256), np.uint8)
+    ids[3:40, 3:90] = 2  # touches the block's corner diagonally, not the block
+    mask = uorf_mask_from_instances(ids)
+    assert (mask[:3, :3] == MASK_SENTINEL_LEVEL).all()
+    assert int((mask == MASK_SENTINEL_LEVEL).sum()) == 9
+    np.testing.assert_array_equal(instances_from_uorf_mask(mask), ids)
+    ids[2, 2] = 1
+    with pytest.raises(ValueError, match="3x3 block must be background") as e:
+        uorf_mask_from_instances(ids)
+    assert "\n" not in str(e.value)
+    small = np.zeros((64, 64), np.uint8)
+    small[1, 1] = 1  # outside the 1x1 block of a 64 px mask
+    assert uorf_mask_from_instances(small)[1, 1] == MASK_BG_LEVEL + 18
 
 
 def test_file_round_trips_bit_exact(tmp_path):

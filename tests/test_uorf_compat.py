@@ -21,7 +21,14 @@ from generators.sampling import make_scene
 from generators.spec import RenderSettings
 from generators.testing import write_raycast_split
 from generators.writer import ViewImages, write_scene
-from scenefmt import MASK_BG_LEVEL, SplitLayout, read_instances
+from scenefmt import (
+    MASK_BG_LEVEL,
+    MASK_SENTINEL_LEVEL,
+    SplitLayout,
+    read_instances,
+    uorf_mask_from_instances,
+    write_mask,
+)
 
 _UORF_SUFFIXES = ("_mask", "_mask_for_moving", "_moved", "_changed", "_mask_for_bg",
                   "_mask_for_providing_bg", "_changed_mask")  # fmt: skip
@@ -34,6 +41,65 @@ def uorf_filenames(root: Path, n_scenes: int) -> list[list[str]]:
         filenames -= set(glob(str(root / f"*{suffix}.png")))
     filenames = sorted(filenames)
     return [sorted(x for x in filenames if f"sc{i:04d}" in x) for i in range(n_scenes)]
+
+
+def uorf_fg_after_resize(mask_path: str, mask_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """uORF's loader with its ``mask_size``: open, convert('RGB'), convert('L'), PIL
+    NEAREST resize to (mask_size, mask_size) (torchvision ``TF.resize`` on a PIL image),
+    background = second-lowest level. Returns (fg bool, resized grey uint8)."""
+    mask_l = Image.open(mask_path).convert("RGB").convert("L")
+    m = np.asarray(mask_l.resize((mask_size, mask_size), Image.Resampling.NEAREST))
+    levels = np.unique(m)
+    assert len(levels) >= 2, f"uORF needs 2 grey levels, got {levels}"
+    return m != levels[1], m
+
+
+def _synthetic_ids(r: int, seed: int) -> list[np.ndarray]:
+    """Instance ids uint8 [r, r] of a few views: rectangles of ids 1..4 (one near the
+    sentinel block), and a view with no object."""
+    rng = np.random.default_rng(seed)
+    views = []
+    for _ in range(3):
+        ids = np.zeros((r, r), np.uint8)
+        for k in range(1, 5):
+            y, x = rng.integers(0, r - r // 4, 2)
+            hh, ww = rng.integers(r // 16, r // 3, 2)
+            ids[y : y + hh, x : x + ww] = k
+        ids[: r // 128 + 1, : r // 128 + 1] = 0  # the sentinel block is background
+        views.append(ids)
+    near = np.zeros((r, r), np.uint8)
+    b = r // 128 + 1
+    near[b : r // 2, b : r // 2] = 3  # diagonally next to the block
+    near[0:b, b : r // 3] = 1  # beside it in the top rows
+    return views + [near, np.zeros((r, r), np.uint8)]
+
+
+@pytest.mark.parametrize("res", [64, 128, 256])
+def test_uorf_rule_survives_nearest_resize_to_mask_size(res, tmp_path):
+    """uORF resizes ``_mask.png`` to ``mask_size`` (default 128) with NEAREST before its
+    second-lowest rule; fg/bg must equal the equally resized ids except the sentinel."""
+    for j, ids in enumerate(_synthetic_ids(res, res)):
+        path = tmp_path / f"v{j}_mask.png"
+        write_mask(path, uorf_mask_from_instances(ids))
+        ids_im = Image.fromarray(ids)
+        for n in sorted({64, 128, res}):
+            fg, m = uorf_fg_after_resize(str(path), n)
+            ids_n = np.asarray(ids_im.resize((n, n), Image.Resampling.NEAREST))
+            sentinel = m == MASK_SENTINEL_LEVEL
+            assert sentinel[0, 0], (res, n, j)
+            assert np.array_equal(fg[~sentinel], ids_n[~sentinel] > 0), (res, n, j)
+            assert (ids_n[sentinel] == 0).all()
+
+
+def test_one_pixel_sentinel_breaks_uorf_at_256():
+    """The format 1.0 bug this guards against: at 256 px a lone sentinel pixel is
+    dropped by the resize to 128 and an object becomes uORF's background."""
+    ids = _synthetic_ids(256, 1)[0]
+    mask = uorf_mask_from_instances(ids)
+    mask[:3, :3] = MASK_BG_LEVEL
+    mask[0, 0] = MASK_SENTINEL_LEVEL
+    m = np.asarray(Image.fromarray(mask).resize((128, 128), Image.Resampling.NEAREST))
+    assert np.unique(m)[0] == MASK_BG_LEVEL and np.unique(m)[1] != MASK_BG_LEVEL
 
 
 def uorf_fg_mask(mask_path: str) -> np.ndarray:
