@@ -223,6 +223,14 @@ class ModelConfig:
     them must be set), so it can only explain the floor and what lies outside, and the
     objects must be explained by foreground slots (with ``fg_zmin`` the two regions
     partition the scene). False = the background slot is a field like the others (paper)."""
+    bg_floor_slab: float | None = None
+    """Background floor prior (needs ``bg_outside_fg``, ``fg_zmin`` and ``fg_box``): over the
+    foreground footprint (``|x|, |y| <= fg_box``) the background slot may hold density only
+    in the slab ``fg_zmin - bg_floor_slab <= z < fg_zmin`` (world units), so it must paint
+    the floor as a plane there instead of a bowl below it, and colour seen on an object in
+    the input view cannot be pushed down under the floor by the background. Outside the
+    footprint (walls, sky) it is unchanged. None = no such prior (paper and the cpu
+    recipe; a lever, docs/notes/cpu_recipe.md)."""
     bg_pos_freqs_xyz: int | None = None
     """Background bandwidth (cpu recipe lever, hypernetwork only): the background slot's
     field sees only the first ``bg_pos_freqs_xyz`` frequencies of gamma(x) (the generated
@@ -342,6 +350,17 @@ class ModelConfig:
             raise ValueError("ModelConfig.box_half and fg_box must be > 0")
         if self.bg_outside_fg and self.fg_box is None and self.fg_zmin is None:
             raise ValueError("ModelConfig.bg_outside_fg needs fg_box or fg_zmin (the region)")
+        if self.bg_floor_slab is not None:
+            if not self.bg_floor_slab > 0:
+                raise ValueError(
+                    f"ModelConfig.bg_floor_slab must be > 0 (world units) or None, "
+                    f"got {self.bg_floor_slab}"
+                )
+            if not (self.bg_outside_fg and self.fg_zmin is not None and self.fg_box is not None):
+                raise ValueError(
+                    "ModelConfig.bg_floor_slab needs bg_outside_fg=True, fg_zmin and fg_box "
+                    "(the slab lies under the foreground region)"
+                )
         if self.bg_pos_freqs_xyz is not None:
             if not 0 <= self.bg_pos_freqs_xyz < self.pos_freqs_xyz:
                 raise ValueError(

@@ -482,8 +482,12 @@ class SVORF(nn.Module):
             if cfg.fg_zmin is not None:  # the floor belongs to the background slot
                 inside = inside & (xk[..., 2] >= cfg.fg_zmin)
             if cfg.bg_outside_fg:  # the background slot only outside the foreground region
-                inside = inside.expand(B, K, P)
-                fg_ok = torch.where(is_bg[:, :, None], ~inside, inside).transpose(1, 2)
+                bg_ok = ~inside
+                if cfg.bg_floor_slab is not None:  # ... and only in the floor slab above it
+                    over = (xk[..., :2].abs() <= cfg.fg_box).all(dim=-1)  # [B, Kx, P]
+                    bg_ok = bg_ok & ~(over & (xk[..., 2] < cfg.fg_zmin - cfg.bg_floor_slab))
+                inside, bg_ok = inside.expand(B, K, P), bg_ok.expand(B, K, P)
+                fg_ok = torch.where(is_bg[:, :, None], bg_ok, inside).transpose(1, 2)
             else:
                 fg_ok = (inside.expand(B, K, P) | is_bg[:, :, None]).transpose(1, 2)  # [B, P, K]
             valid = fg_ok if valid is None else valid & fg_ok

@@ -191,6 +191,32 @@ def test_bg_outside_fg_keeps_the_background_slot_out_of_the_object_region():
     assert model_config("paper").bg_outside_fg is False
 
 
+def test_bg_floor_slab_keeps_the_background_in_a_slab_under_the_object_region():
+    kw = dict(fg_zmin=0.0, fg_box=3.0, bg_outside_fg=True)
+    base, slab = _model(**kw), _model(**kw, bg_floor_slab=0.2)
+    slab.load_state_dict(base.state_dict())
+    imgs = torch.rand(1, 3, 32, 32)
+    # Samples lie at t in [near, far] = [6, 20]. Ray 0: horizontal in the slab (z = -0.1);
+    # ray 1: vertical, wholly under the slab inside the footprint (z from -15 to -1);
+    # ray 2: horizontal above the floor (z = 1).
+    o = torch.tensor([[-9.0, 0.5, -0.1], [0.5, 0.5, -21.0], [-9.0, 0.5, 1.0]])[None]
+    d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])[None]
+    with torch.no_grad():
+        a, b = base(imgs, o, d), slab(imgs, o, d)
+    # In the slab and above the floor nothing changes.
+    torch.testing.assert_close(a.rgb[0, 0], b.rgb[0, 0])
+    torch.testing.assert_close(a.rgb[0, 2], b.rgb[0, 2])
+    torch.testing.assert_close(a.slot_probs[0, 0], b.slot_probs[0, 0])
+    # Under the slab: without the prior the background owns the ray, with it no slot does.
+    assert float(a.slot_probs[0, 1, -1]) > 1e-3
+    assert float(b.slot_probs[0, 1].abs().sum()) == 0.0
+    with pytest.raises(ValueError, match="bg_floor_slab"):
+        model_config("smoke", bg_floor_slab=0.2, fg_zmin=0.0, fg_box=3.0)
+    with pytest.raises(ValueError, match="bg_floor_slab"):
+        model_config("smoke", bg_floor_slab=0.0, **kw)
+    assert model_config("paper").bg_floor_slab is None
+
+
 def test_plot_subcommand_draws_runs_and_rejects_a_non_run(tmp_path):
     from PIL import Image
 
