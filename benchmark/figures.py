@@ -4,7 +4,8 @@ Where this sits: protocols call these after their rows are final. The
 qualitative grid shows one test scene per dataset (segmentation / nvs); the bar
 chart compares measured rows with the paper's (ablation / generalization). Every
 function writes atomically and returns the file name relative to the report
-folder, which goes into the report's ``figures`` list.
+folder, which goes into the report's ``figures`` list. Numbers and names on the figures
+come from :mod:`benchmark.display`, as in the tables (ARI family on the paper's 0-100 scale).
 """
 
 from __future__ import annotations
@@ -16,6 +17,16 @@ from typing import Any
 
 import numpy as np
 
+from benchmark.display import (
+    ARI_FAMILY,
+    fmt_ari,
+    fmt_memory,
+    fmt_metric,
+    fmt_ratio,
+    fmt_seconds,
+    metric_label,
+    table_title,
+)
 from scenefmt import atomic_write_bytes
 
 __all__ = [
@@ -150,7 +161,8 @@ def bar_chart(
     metrics: list[str],
     chance: dict[str, float] | None = None,
 ) -> str:
-    """Grouped bars of measured vs paper values, one panel per metric.
+    """Grouped bars of measured vs paper values, one panel per metric (ARI family, on the
+    paper's 0-100 scale; each bar is labelled with its value).
 
     Args:
         path: Output PNG.
@@ -178,12 +190,11 @@ def bar_chart(
         mv = [np.nan if v is None else v for v in meas]
         ax.bar(x - 0.2, pv, 0.4, label="paper", color="#9e9e9e")
         ax.bar(x + 0.2, mv, 0.4, label="measured", color="#1f77b4")
-        for xi, v in zip(x, paper, strict=True):
-            if v is None:
-                ax.text(xi - 0.2, 0.5, "n/a", ha="center", va="bottom", fontsize=6, rotation=90)
-        for xi, v in zip(x, meas, strict=True):
-            if v is None:
-                ax.text(xi + 0.2, 0.5, "null", ha="center", va="bottom", fontsize=6, rotation=90)
+        for off, vals, missing in ((-0.2, paper, "not in paper"), (0.2, meas, "no value")):
+            for xi, v in zip(x, vals, strict=True):
+                text = missing if v is None else fmt_metric(metric, v)
+                ax.text(xi + off, max(v or 0.0, 0.0) + 0.5, text, ha="center", va="bottom",
+                        fontsize=6, rotation=90)  # fmt: skip
         if chance and chance.get(metric) is not None:
             ax.axhline(chance[metric], color="#d62728", ls="--", lw=1, label="chance baseline")
         ticks = [(xi, g.get("chance", {}).get(metric)) for xi, g in zip(x, groups, strict=True)]
@@ -200,7 +211,8 @@ def bar_chart(
             )
         ax.set_xticks(x)
         ax.set_xticklabels([g["label"] for g in groups], rotation=35, ha="right", fontsize=7)
-        ax.set_title(metric, fontsize=9)
+        scale = " (0-100)" if metric in ARI_FAMILY else ""
+        ax.set_title(metric_label(metric) + scale, fontsize=9)
         # Headroom above 100 keeps the legend clear of the bars.
         ax.set_ylim(min(0.0, np.nanmin(mv + pv + [0.0]) - 5), 122.0)
         ax.set_yticks([0, 20, 40, 60, 80, 100])
@@ -211,7 +223,8 @@ def bar_chart(
 
 
 def speed_chart(path: str | os.PathLike, rows: list[dict[str, Any]], scale: str) -> str:
-    """Memory and epoch time of tab:time: the paper's models beside the measured sVORF.
+    """Memory and epoch time of tab:time (Table 8): the paper's models beside the measured
+    sVORF.
 
     Args:
         path: Output PNG.
@@ -235,28 +248,30 @@ def speed_chart(path: str | os.PathLike, rows: list[dict[str, Any]], scale: str)
         ax.bar(range(len(sel)), [np.nan if v is None else v for v in vals], color=colors)
         for i, v in enumerate(vals):
             if v is not None:
-                ax.text(i, v, f"{v:.3g}", ha="center", va="bottom", fontsize=7)
+                ax.text(i, v, fmt_metric(metric, v), ha="center", va="bottom", fontsize=7)
         ax.set_xticks(range(len(sel)))
         ax.set_xticklabels(labels, rotation=30, ha="right", fontsize=7)
-        ax.set_title(f"{metric} ({unit})", fontsize=9)
+        ax.set_title(f"{metric_label(metric)} ({unit})", fontsize=9)
     fig.suptitle(
-        "tab:time: training memory and one CLEVR-567 epoch at batch 1 (paper: V100)", fontsize=10
+        f"{table_title('tab:time')}: training memory and one CLEVR-567 epoch at batch 1 "
+        "(paper: V100)",
+        fontsize=10,
     )
     _save(fig, path)
     return path.name
 
 
 def _ratio_text(ratio: dict[str, Any], k: str) -> str:
-    """``k`` of a ratio row as "k 2.504x (paper 2.56x, target 3x)" (3 decimals: a ratio just
-    below its target must not print as the target)."""
+    """``k`` of a ratio row as "step time ratio 2.504x (paper 2.56x, target 3x)" (3 decimals:
+    a ratio just below its target must not print as the target)."""
     v, paper, goal = ratio["metrics"].get(k), ratio.get("paper", {}), ratio.get("targets", {})
     extra = []
     if k in paper:
-        extra.append(f"paper {paper[k]:.2f}x")
+        extra.append(f"paper {fmt_ratio(paper[k])}")
     if k in goal:
         extra.append(f"target {goal[k]:g}x")
     tail = f" ({', '.join(extra)})" if extra else ""
-    return f"{k} " + ("null" if v is None else f"{v:.3f}x") + tail
+    return f"{metric_label(k)} " + ("no value" if v is None else fmt_ratio(v, 3)) + tail
 
 
 def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], scale: str) -> str:
@@ -287,8 +302,9 @@ def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], sca
     ax.bar(range(len(sel)), [np.nan if v is None else v for v in vals], color=colors)
     for i, v in enumerate(vals):
         ax.text(
-            i, v or 0.0, "null" if v is None else f"{v:.3g} s", ha="center", va="bottom", fontsize=7
-        )
+            i, v or 0.0, "no value" if v is None else fmt_seconds(v), ha="center", va="bottom",
+            fontsize=7,
+        )  # fmt: skip
     ax.set_title("median training step (s)", fontsize=9)
     ax = axes[1]
     x = np.arange(len(sel))
@@ -300,10 +316,10 @@ def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], sca
     for off, key, hatch in bars:
         vals = [r["metrics"].get(key) for r in sel]
         ax.bar(x + off, [np.nan if v is None else v for v in vals], 0.27, color=colors,
-               hatch=hatch, edgecolor="k", lw=0.5, label=key)  # fmt: skip
+               hatch=hatch, edgecolor="k", lw=0.5, label=metric_label(key))  # fmt: skip
         for i, v in enumerate(vals):
-            ax.text(i + off, v or 0.0, "null" if v is None else f"{v:.0f}", ha="center",
-                    va="bottom", fontsize=6)  # fmt: skip
+            ax.text(i + off, v or 0.0, "no value" if v is None else fmt_memory(v, ""),
+                    ha="center", va="bottom", fontsize=6)  # fmt: skip
     ax.legend(fontsize=7, frameon=False)
     ax.set_title("memory (MiB): process peak / added by training / tensor peak", fontsize=9)
     for ax in axes:
@@ -343,7 +359,7 @@ def stability_chart(path: str | os.PathLike, rows: list[dict[str, Any]]) -> str:
     )
     for t, c in colors.items():
         if any(r["table"] == t for r in rows):
-            ax.bar([np.nan], [np.nan], color=c, label=t)
+            ax.bar([np.nan], [np.nan], color=c, label=table_title(t))
     for i, r in enumerate(rows):
         if not r.get("pass", True):
             ax.text(i, 1.5e-12, "FAIL", color="#d62728", ha="center", fontsize=7, rotation=90)
@@ -522,8 +538,8 @@ def pareto_chart(
         ax.set_xscale("log")
         if c["y_better"] == "lower" and all(r["metrics"][c["y"]] > 0 for r in pts):
             ax.set_yscale("log")
-        ax.set_xlabel(f"{c['x']} (log)", fontsize=8)
-        ax.set_ylabel(f"{c['y']} ({c['y_better']} is better)", fontsize=8)
+        ax.set_xlabel(f"{metric_label(c['x'])} (log)", fontsize=8)
+        ax.set_ylabel(f"{metric_label(c['y'])} ({c['y_better']} is better)", fontsize=8)
         ax.set_title(name, fontsize=9)
         ax.tick_params(labelsize=7)
         ax.legend(fontsize=6, loc="best")
@@ -535,7 +551,8 @@ def pareto_chart(
 def training_chart(path: str | os.PathLike, curve: dict[str, Any]) -> str:
     """Training curve of ``tradeoff``: training-batch PSNR (raw and smoothed) against
     training wall time, the running-best front, the knee and the budget's end; held-out
-    metrics (``eval.jsonl``) on a second axis when the run has them.
+    metrics (``eval.jsonl``) on a second axis when the run has them. ``eval.jsonl`` (and the
+    curve's ``held_out``) store ARI on a 0-1 scale; it is drawn on the paper's 0-100 scale.
 
     Returns:
         The file name of ``path``.
@@ -561,9 +578,13 @@ def training_chart(path: str | os.PathLike, curve: dict[str, Any]) -> str:
         ax2 = ax.twinx()
         for k, col in (("nv_ari", "#2ca02c"), ("fg_ari", "#ff7f0e")):
             if all(k in h for h in held):
-                ax2.plot([h["wall_s"] / 60 for h in held], [h[k] for h in held], "-o",
-                         color=col, ms=3, label=f"held-out {k}")  # fmt: skip
-        ax2.set_ylabel("held-out ARI (0-1)", fontsize=8)
+                ax2.plot([h["wall_s"] / 60 for h in held], [100.0 * h[k] for h in held], "-o",
+                         color=col, ms=3, label=f"held-out {metric_label(k)}")  # fmt: skip
+                last = held[-1]
+                ax2.annotate(fmt_ari(100.0 * last[k]), (last["wall_s"] / 60, 100.0 * last[k]),
+                             textcoords="offset points", xytext=(3, 3), fontsize=6,
+                             color=col)  # fmt: skip
+        ax2.set_ylabel("held-out ARI (0-100, as in the paper)", fontsize=8)
         ax2.legend(fontsize=7, loc="lower center")
     ax.legend(fontsize=7, loc="lower right")
     ax.set_title(f"tradeoff: training curve of run {curve['run']}", fontsize=9)

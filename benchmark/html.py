@@ -20,6 +20,15 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+from benchmark.display import (
+    LEGEND,
+    fmt_metric,
+    fmt_seconds,
+    metric_label,
+    reason_text,
+    table_description,
+    table_title,
+)
 from benchmark.paper_numbers import PAPER_TABLES
 from scenefmt import atomic_write_bytes
 
@@ -44,33 +53,31 @@ tr.baseline td{background:#fff4e5;font-style:italic}
 .warn{background:#fdecea;border:1px solid #f5c2c0;padding:8px 12px;margin:8px 0}
 .ok{background:#e8f5e9;border:1px solid #b7dfb9;padding:8px 12px;margin:8px 0}
 .meta td{text-align:left}img{max-width:100%;border:1px solid #ddd;margin:6px 0}
-code{background:#f4f4f4;padding:0 3px}
+code{background:#f4f4f4;padding:0 3px}.id{color:#777;font-size:12px}
 """
 
 
 def fmt_value(v: Any, metric: str = "") -> str:
-    """Format a metric value for a table cell (null -> an em dash)."""
-    if v is None:
-        return "\u2014"
-    if isinstance(v, bool):
-        return str(v)
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if metric == "nonfinite_count" or (metric.startswith("n_") and v.is_integer()):
-            return str(int(v))
-        if v == 0:
-            return "0"
-        if abs(v) < 1e-3 or abs(v) >= 1e5:
-            return f"{v:.2e}"
-        if metric in ("ssim", "lpips") or abs(v) < 1:
-            return f"{v:.4f}"
-        return f"{v:.2f}"
-    return html.escape(str(v))
+    """A metric value for a table cell, HTML-escaped (:func:`benchmark.display.fmt_metric`:
+    ARI family 0-100 with one decimal, PSNR in dB, ...; null -> an em dash)."""
+    return html.escape(fmt_metric(metric, v))
+
+
+def _th(metric: str) -> str:
+    """A metric's column header: its readable name, the stored name and unit on hover."""
+    from benchmark.schema import METRIC_UNITS
+
+    unit = METRIC_UNITS.get(metric, "")
+    tip = f"{metric} in report.json" + (f"; stored as {unit}" if unit else "")
+    return f"<th title='{_e(tip)}'>{_e(metric_label(metric))}</th>"
 
 
 def _e(x: Any) -> str:
     return html.escape(str(x))
+
+
+_YES_NO = {True: "yes", False: "<b>no</b>", None: "cannot tell"}
+_HOLDS = {True: "holds", False: "does not hold", None: "n/a"}
 
 
 def metric_columns(table: str, rows: list[dict[str, Any]]) -> list[str]:
@@ -91,7 +98,7 @@ def metric_columns(table: str, rows: list[dict[str, Any]]) -> list[str]:
 
 def _rows_table(rows: list[dict[str, Any]], scale: str) -> str:
     metrics = metric_columns(rows[0]["table"], rows) if rows else []
-    head = "".join(f"<th>{_e(m)}</th>" for m in metrics)
+    head = "".join(_th(m) for m in metrics)
     out = [
         (
             "<table><tr><th class=l>model</th><th class=l>dataset</th><th class=l>source</th>"
@@ -103,8 +110,11 @@ def _rows_table(rows: list[dict[str, Any]], scale: str) -> str:
         label = src if src != "measured" else f"measured ({scale})"
         cells = []
         for m in metrics:
-            v = r["metrics"].get(m, None) if m in r["metrics"] else None
-            title = r["null_reasons"].get(m, "") if m in r["metrics"] and v is None else ""
+            if m not in r["metrics"]:  # the row has no such metric: an empty cell
+                cells.append("<td></td>")
+                continue
+            v = r["metrics"][m]
+            title = reason_text(r["null_reasons"].get(m, "")) if v is None else ""
             cells.append(f"<td title='{_e(title)}'>{fmt_value(v, m)}</td>")
         notes = []
         if "pass" in r:
@@ -114,7 +124,7 @@ def _rows_table(rows: list[dict[str, Any]], scale: str) -> str:
         if r.get("note"):
             notes.append(_e(r["note"]))
         for m, why in sorted(r["null_reasons"].items()):
-            notes.append(f"{_e(m)}: {_e(why)[:120]}")
+            notes.append(f"{_e(metric_label(m))}: {_e(reason_text(why)[:120])}")
         out.append(
             f"<tr class={_e(src)}><td class=l>{_e(r['model'])}</td><td class=l>{_e(r['dataset'])}</td>"
             f"<td class=l>{_e(label)}</td><td>{_e(r.get('n_scenes', r.get('n_cases', '')))}</td>{''.join(cells)}"
@@ -162,11 +172,12 @@ def _verdicts(report: dict[str, Any]) -> str:
     for v in vs:
         cls = "measured" if v.get("decomposes") else "baseline"
         out.append(
-            f"<tr class={cls}><td class=l>{_e(v.get('table', ''))}</td><td class=l>{_e(v['model'])}</td>"
+            f"<tr class={cls}><td class=l>{_e(table_title(v.get('table', '')))}</td>"
+            f"<td class=l>{_e(v['model'])}</td>"
             f"<td class=l>{_e(v['dataset'])}</td><td>{fmt_value(v.get('fg_ari'), 'fg_ari')}</td>"
             f"<td>{fmt_value(v.get('chance_fg_ari'), 'fg_ari')}</td>"
             f"<td>{fmt_value(v.get('fg_ari_shuffled'), 'fg_ari')}</td>"
-            f"<td class=l>{_e(v.get('decomposes'))}</td>"
+            f"<td class=l>{_YES_NO.get(v.get('decomposes'), '')}</td>"
             f"<td class=l>{_e(v['message'])}</td></tr>"
         )
     out.append("</table>")
@@ -190,13 +201,13 @@ def _orderings(report: dict[str, Any]) -> str:
         cls = "measured" if held else "baseline"
         spread = o.get("seed_spread")
         out.append(
-            f"<tr class={cls}><td class=l>{_e(o['table'])}</td><td class=l>{_e(o['claim'])}</td>"
-            f"<td class=l>{_e(o['metric'])}</td>"
+            f"<tr class={cls}><td class=l>{_e(table_title(o['table']))}</td>"
+            f"<td class=l>{_e(o['claim'])}</td><td class=l>{_e(metric_label(o['metric']))}</td>"
             f"<td>{fmt_value(o['a']['measured'], o['metric'])}</td>"
             f"<td>{fmt_value(o['b']['measured'], o['metric'])}</td>"
             f"<td>{fmt_value(o['margin'], o['metric'])}</td>"
             f"<td>{fmt_value(spread, o['metric']) if spread is not None else '-'}</td>"
-            f"<td class=l>{_e(o['paper_holds'])}</td>"
+            f"<td class=l>{_HOLDS.get(o['paper_holds'], '')}</td>"
             f"<td class=l>{'holds' if held else ('n/a' if held is None else '<b>does not hold</b>')}</td></tr>"
         )
     out.append("</table>")
@@ -211,6 +222,11 @@ def render_html(report: dict[str, Any]) -> str:
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",
         f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>",
         f"<h1>{_e(title)}</h1>",
+        (
+            f"<p>{_e(LEGEND)} PSNR in dB; SSIM and LPIPS unitless. An empty cell: the row has "
+            "no such metric; \u2014: no value (the reason is in the row's notes). Hover a "
+            "column header for the name and unit stored in <code>report.json</code>.</p>"
+        ),
     ]
     parts.append(_verdicts(report))
     if report.get("status") != "complete":
@@ -229,8 +245,10 @@ def render_html(report: dict[str, Any]) -> str:
         ),
         ("torch / python", f"{hw['torch_version']} / {hw['python_version']}"),
         (
-            "wall time (s)",
-            ", ".join(f"{k} {wall[k]:.1f}" for k in ("data", "training", "evaluation", "total")),
+            "wall time",
+            ", ".join(
+                f"{k} {fmt_seconds(wall[k])}" for k in ("data", "training", "evaluation", "total")
+            ),
         ),
         ("seeds", ", ".join(f"{k}={v}" for k, v in report["seeds"].items())),
     ]
@@ -248,8 +266,10 @@ def render_html(report: dict[str, Any]) -> str:
     for r in report["rows"]:
         tables.setdefault(r["table"], []).append(r)
     for table, rows in tables.items():
-        caption = PAPER_TABLES.get(table, {}).get("caption", "")
-        parts.append(f"<h2>{_e(table)}</h2><p>{_e(caption)}</p>")
+        parts.append(
+            f"<h2>{_e(table_title(table))}</h2><p>{_e(table_description(table))} "
+            f"<span class=id>(table id in report.json: <code>{_e(table)}</code>)</span></p>"
+        )
         parts.append(_rows_table(rows, scale))
 
     if report.get("figures"):
@@ -270,14 +290,14 @@ def render_html(report: dict[str, Any]) -> str:
     if report["models"]:
         parts.append(
             "<h2>Models</h2><table><tr><th class=l>run key</th><th class=l>variant</th>"
-            "<th class=l>train data</th><th>seed</th><th>steps</th><th>train s</th>"
+            "<th class=l>train data</th><th>seed</th><th>steps</th><th>training time</th>"
             "<th class=l>reused</th></tr>"
         )
         for m in report["models"]:
             parts.append(
                 f"<tr><td class=l><code>{_e(m['run_key'])}</code></td><td class=l>{_e(m['variant'])}</td>"
                 f"<td class=l>{_e(m['train_dataset'])}</td><td>{m['seed']}</td>"
-                f"<td>{_e(str(m.get('steps_done', '')))}</td><td>{m['train_wall_s']:.1f}</td><td class=l>{m['reused']}</td></tr>"
+                f"<td>{_e(str(m.get('steps_done', '')))}</td><td>{fmt_seconds(m['train_wall_s'])}</td><td class=l>{m['reused']}</td></tr>"
             )
         parts.append(
             "</table><p>Full model and training configs are in <code>report.json</code>.</p>"

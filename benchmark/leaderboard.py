@@ -5,22 +5,34 @@ files (every protocol writes one), validates each against the schema, keeps the
 newest row per (protocol, scale, table, model, dataset, source, training seed of a
 measured row), and writes
 ``DIR/leaderboard.json``. The printed table puts every measured and baseline
-row under the paper's rows of the same table.
+row under the paper's rows of the same table, formatted by :mod:`benchmark.display`
+and at most :data:`WIDTH` columns wide. ``leaderboard.json`` keeps the reports'
+stored values (ARI family in percent, like ``report.json``).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import textwrap
 from pathlib import Path
 from typing import Any
 
-from benchmark.html import fmt_value, metric_columns
+from benchmark.display import (
+    LEGEND,
+    NULL,
+    fmt_metric,
+    metric_label,
+    reason_text,
+    table_description,
+    table_title,
+)
+from benchmark.html import metric_columns
 from benchmark.paper_numbers import PAPER_TABLES
 from benchmark.report import utc_now, write_json
 from benchmark.schema import SchemaError, validate_report
 
-__all__ = ["LEADERBOARD_SCHEMA_VERSION", "format_leaderboard", "merge_reports"]
+__all__ = ["LEADERBOARD_SCHEMA_VERSION", "WIDTH", "format_leaderboard", "merge_reports"]
 
 LEADERBOARD_SCHEMA_VERSION = "1.0"
 
@@ -125,42 +137,157 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
     return board
 
 
-def format_leaderboard(board: dict[str, Any]) -> str:
-    """Plain-text tables, one per paper table: paper rows, then measured and baseline rows."""
+#: Widest line of the printed leaderboard (terminal columns).
+WIDTH = 120
+#: Model names longer than this are cut (with an ellipsis) in the printed table.
+MODEL_WIDTH = 44
+
+
+def _clip(text: str, width: int) -> str:
+    return text if len(text) <= width else text[: width - 1] + "\u2026"
+
+
+def _wrap(text: str, width: int, indent: str = "") -> list[str]:
+    return textwrap.wrap(
+        text, width, initial_indent=indent, subsequent_indent=indent + "  ", break_on_hyphens=False
+    ) or [indent]
+
+
+def _source(r: dict[str, Any]) -> str:
+    """Who the row's numbers come from: ``paper``, ``smoke seed 0`` (measured at a scale
+    and training seed) or ``smoke baseline``."""
+    if r["source"] == "paper":
+        return "paper"
+    if r["source"] == "baseline":
+        return f"{r['scale']} baseline"
+    return f"{r['scale']} seed {r['seed']}" if r.get("seed") is not None else str(r["scale"])
+
+
+def _grid(head: list[str], body: list[list[str]], right_from: int) -> list[str]:
+    widths = [max(len(x) for x in col) for col in zip(head, *body, strict=True)]
+
+    def line(cells: list[str]) -> str:
+        out = [
+            c.rjust(w) if i >= right_from else c.ljust(w)
+            for i, (c, w) in enumerate(zip(cells, widths, strict=True))
+        ]
+        return "  ".join(out).rstrip()
+
+    return [line(head), line(["-" * w for w in widths]), *(line(b) for b in body)]
+
+
+def _chunks(widths: list[int], room: int) -> list[list[int]]:
+    """Split metric columns (their widths) into runs that fit in ``room`` columns each."""
+    out: list[list[int]] = [[]]
+    used = 0
+    for i, w in enumerate(widths):
+        if out[-1] and used + 2 + w > room:
+            out.append([])
+            used = 0
+        out[-1].append(i)
+        used += 2 + w
+    return out
+
+
+def _null_notes(rows: list[dict[str, Any]], width: int) -> list[str]:
+    """One line per (row, reason): which values are null and why, in words."""
+    groups: dict[tuple[str, str, str, tuple[str, ...]], list[str]] = {}
+    for r in rows:
+        by_reason: dict[str, list[str]] = {}
+        for m, why in sorted(r["null_reasons"].items()):
+            if r["metrics"].get(m, 0) is None:
+                by_reason.setdefault(reason_text(why), []).append(m)
+        for why, ms in by_reason.items():
+            what = (
+                ("all metrics",)
+                if len(ms) == len(r["metrics"]) and len(ms) > 1
+                else tuple(metric_label(m) for m in ms)
+            )
+            key = (r["model"], _source(r), why, what)
+            groups.setdefault(key, [])
+            if r["dataset"] not in groups[key]:
+                groups[key].append(r["dataset"])
+    out = []
+    for (model, src, why, what), datasets in groups.items():
+        text = f"{NULL} {model} ({src}), {', '.join(what)} on {', '.join(datasets)}: {why}"
+        out.append(_clip(text, width))
+    return out
+
+
+def _format_table(table: str, rows: list[dict[str, Any]], width: int) -> list[str]:
+    metrics = metric_columns(table, rows)
+    title = table_title(table)
+    lines = [f"== {title} ==", *_wrap(table_description(table), width)]
+    labels = [metric_label(m) for m in metrics]
+    models = [_clip(r["model"], MODEL_WIDTH) for r in rows]
+    sources = [_source(r) for r in rows]
+    cells = [
+        [fmt_metric(m, r["metrics"][m]) if m in r["metrics"] else "" for m in metrics] for r in rows
+    ]
+    key_w = max(len("model"), *map(len, models)) + 2 + max(len("source"), *map(len, sources))
+    col_w = [max(len(labels[i]), *(len(c[i]) for c in cells)) for i in range(len(metrics))]
+    parts = _chunks(col_w, width - key_w)
+    for k, idx in enumerate(parts):
+        if len(parts) > 1:
+            lines.append(f"(part {k + 1} of {len(parts)} of the columns)")
+        head = ["model", "source", *(labels[i] for i in idx)]
+        body, groups = [], []
+        for j, r in enumerate(rows):
+            if k and not any(cells[j][i] for i in idx):
+                continue  # later parts: only the rows with a value in these columns
+            if not groups or groups[-1][0] != r["dataset"]:
+                groups.append((r["dataset"], len(body)))
+            body.append([models[j], sources[j], *(cells[j][i] for i in idx)])
+        grid = _grid(head, body, right_from=2)
+        lines.extend(grid[:2])
+        starts = {pos: ds for ds, pos in groups}
+        for pos, text in enumerate(grid[2:]):
+            if pos in starts:
+                lines.append(f"[{starts[pos]}]")
+            lines.append(text)
+        lines.append("")
+    notes = _null_notes(rows, width)
+    if notes:
+        lines.append("Empty values (" + NULL + "):")
+        lines.extend(notes)
+        lines.append("")
+    return lines
+
+
+def format_leaderboard(board: dict[str, Any], width: int = WIDTH) -> str:
+    """Plain-text tables, one per table: paper rows, then measured and baseline rows,
+    grouped by test dataset; no line is wider than ``width``.
+
+    Numbers use the paper's conventions (:mod:`benchmark.display`: ARI family on the
+    0-100 scale with one decimal, PSNR in dB, SSIM / LPIPS with three decimals, times
+    with units); metric columns that do not fit beside the model and source columns
+    continue in a second part of the table.
+    """
     tables: dict[str, list[dict[str, Any]]] = {}
     for e in board["entries"]:
         tables.setdefault(e["table"], []).append(e)
-    # Show paper-only tables only if some report measured rows for them.
-    lines = []
+    lines: list[str] = []
     for table, rows in tables.items():
+        # Paper-only tables are shown only when some report measured rows for them.
         if all(r["source"] == "paper" for r in rows):
             continue
-        metrics = metric_columns(table, rows)
-        caption = PAPER_TABLES.get(table, {}).get("caption", "")
-        lines.append(f"== {table}  {caption}")
-        header = ["model", "dataset", "source", *metrics]
-        body = []
-        for r in rows:
-            src = r["source"] if r["source"] == "paper" else f"{r['source']}/{r['scale']}"
-            if r.get("seed") is not None:
-                src += f" seed {r['seed']}"
-            body.append(
-                [
-                    r["model"],
-                    r["dataset"],
-                    src,
-                    *(fmt_value(r["metrics"].get(m), m) for m in metrics),
-                ]
-            )
-        widths = [max(len(str(x)) for x in col) for col in zip(header, *body, strict=True)]
-        fmt = "  ".join(f"{{:<{w}}}" for w in widths)
-        lines.append(fmt.format(*header))
-        lines.append(fmt.format(*("-" * w for w in widths)))
-        lines.extend(fmt.format(*b) for b in body)
-        lines.append("")
+        lines.extend(_format_table(table, rows, width))
+    if lines:
+        head = [
+            *_wrap(LEGEND, width),
+            *_wrap(
+                "source: 'paper' = the paper's number; '<scale> seed N' = measured here at "
+                "that scale with training seed N; '<scale> baseline' = a chance baseline "
+                "computed here. An empty cell: the row has no such metric.",
+                width,
+            ),
+            "",
+        ]
+        lines = head + lines
     if board["skipped"]:
         lines.append("Skipped reports:")
-        lines.extend(f"  {s['report']}: {s['reason']}" for s in board["skipped"])
+        for s in board["skipped"]:
+            lines.extend(_wrap(f"{s['report']}: {s['reason']}", width, indent="  "))
     if not lines:
         lines.append("No measured rows found (no valid report.json under the folder).")
     return "\n".join(lines)

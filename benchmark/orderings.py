@@ -17,6 +17,9 @@ B may be a chance baseline (``b_source="baseline"``: the best baseline row on th
 table and dataset), for tables whose paper comparisons are between methods that the
 benchmark does not train.
 
+Values and margins are in the report's stored units (ARI family in percent, so a
+``tolerance`` of 5 is 5 points on the paper's 0-100 scale).
+
 Each entry gives the measured and paper values, whether the paper's own numbers keep the
 claim, whether the measured rows do, the margin, and the seed-to-seed spread where rows of
 more than one seed exist (``seed_spread``; null with a reason when one seed was run), so

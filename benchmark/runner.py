@@ -1077,8 +1077,8 @@ def run_table_protocol(
         if psnr is not None and flat is not None:
             word = "above" if psnr > flat + 1.0 else "NOT clearly above (within 1 dB or below)"
             ctx.notes.append(
-                f"{r['table']} / {r['model']} / {r['dataset']}: novel-view PSNR {psnr:.2f} dB is "
-                f"{word} the flat median-colour baseline {flat:.2f} dB."
+                f"{r['table']} / {r['model']} / {r['dataset']}: novel-view PSNR {psnr:.1f} dB is "
+                f"{word} the flat median-colour baseline {flat:.1f} dB."
             )
     judged = [v for v in report["verdicts"] if v["decomposes"] is not None]
     if judged:

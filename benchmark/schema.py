@@ -30,6 +30,17 @@ Report layout (``schema_version`` ``REPORT_SCHEMA_VERSION``)::
       "notes": [str], "figures": [str], "units": {metric: str}
     }
 
+Scales of stored values: metrics are stored in the units of :data:`METRIC_UNITS` (copied
+into each report's ``units``). The ARI family (``ari``, ``fg_ari``, ``nv_ari``,
+``nv_fg_ari``, ``nv_ari_last``, ``ari_all``, ``fg_ari_all``, ``ari_shuffled``,
+``fg_ari_shuffled``, ``fg_ari_gain``, and a verdict's ``fg_ari`` / ``chance_fg_ari`` /
+``fg_ari_shuffled``) is stored in percent, the paper's 0-100 scale. Two places keep a
+0-1 ARI on purpose: the ``value`` / ``reference_value`` of ``stability_metrics`` rows
+(ARI in [-1, 1], compared with sklearn), and the ``held_out`` points of a ``tradeoff``
+training curve (copied from the run's ``eval.jsonl``). Pages, figures and the printed
+leaderboard show the ARI-family metrics on the 0-100 scale (:mod:`benchmark.display`);
+the stored values are never rescaled.
+
 Rules beyond types: no NaN or infinity anywhere (a metric that cannot be
 computed is ``null`` and its reason is in ``null_reasons``); metric names come
 from :data:`METRIC_UNITS`; paper rows must equal the transcription in

@@ -260,7 +260,11 @@ def test_leaderboard_merges_keeps_newest_and_skips_invalid(tmp_path):
     assert len([e for e in board["entries"] if e["source"] == "paper"]) == 5
     assert [s["report"] for s in board["skipped"]] == [str(Path("c") / "report.json")]
     text = format_leaderboard(board)
-    assert "sVORF (w/o NVS)" in text and "42.00" in text and "measured/smoke" in text
+    assert (
+        "sVORF (w/o NVS)" in text and "smoke seed 0" in text and "== Ablations (Table 5) ==" in text
+    )
+    # ARI family on the paper's 0-100 scale with one decimal (stored 42.0 -> "42.0").
+    assert re.search(r"smoke seed 0\s+42\.0\s", text) and "42.00" not in text
 
 
 # ---------------------------------------------------------------------- evaluation
@@ -335,8 +339,9 @@ def test_tiny_protocol_end_to_end_writes_json_figures_html(e2e):
         assert (folder / f).stat().st_size > 1000
     assert len(report["figures"]) == 2
     page = (folder / "index.html").read_text()
-    assert "tab:ablation" in page and "bars.png" in page and "decompose" in page
-    assert "fg_ari_shuffled" in page and "fg_ari_gain" in page
+    assert "Ablations (Table 5)" in page and "bars.png" in page and "decompose" in page
+    assert ">FG-ARI shuffled</th>" in page and ">FG-ARI gain</th>" in page
+    assert "<h2>tab:ablation</h2>" not in page  # the id only as a reference, not a title
     assert len(list((out / "reports" / "runs").iterdir())) == 2
 
 

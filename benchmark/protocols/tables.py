@@ -14,6 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from benchmark.display import table_ref, table_title
 from benchmark.figures import bar_chart, qualitative_grid
 from benchmark.orderings import Ordering
 from benchmark.paper_numbers import PAPER_TABLES
@@ -101,7 +102,11 @@ def _bars(
                     v = b["metrics"].get(m)
                     if v is not None:
                         chance[m] = max(chance.get(m, v), v)
-        label = r["model"] if len(tables) == 1 else f"{r['model']}\n[{r['table']}, {r['dataset']}]"
+        label = (
+            r["model"]
+            if len(tables) == 1
+            else f"{r['model']}\n[{table_ref(r['table'])}, {r['dataset']}]"
+        )
         groups.append(
             {
                 "label": label,
@@ -162,7 +167,7 @@ def run_segmentation(ctx: Context) -> Path:
                 ["tab:seg"],
                 ["nv_ari", "ari", "fg_ari"],
                 "bars_tab_seg.png",
-                f"tab:seg, measured ({ctx.scale}) vs paper",
+                f"{table_title('tab:seg')}: measured ({ctx.scale}) vs paper",
             )
         ]
 

@@ -1251,7 +1251,7 @@ def _render_note(
 def format_render_table(rows: list[dict[str, Any]]) -> str:
     """Plain-text table of the render curve's rows."""
     head = (
-        f"{'point':58s} {'s/view':>8s} {'speed-up':>8s} {'psnr':>7s} {'nv_ari':>7s} "
+        f"{'point':58s} {'s/view':>8s} {'speed-up':>8s} {'PSNR dB':>7s} {'NV-ARI':>7s} "
         f"{'rgb mean':>9s} {'labels':>7s} {'front':>5s}"
     )
     lines = [head, "-" * len(head)]
@@ -1263,7 +1263,7 @@ def format_render_table(rows: list[dict[str, Any]]) -> str:
 
         lines.append(
             f"{r['model'][:58]:58s} {f('render_s_per_view', '8.4f')} {f('speedup', '8.2f')} "
-            f"{f('psnr', '7.2f')} {f('nv_ari', '7.2f')} {f('rgb_mean_err', '9.2e')} "
+            f"{f('psnr', '7.1f')} {f('nv_ari', '7.1f')} {f('rgb_mean_err', '9.2e')} "
             f"{f('labels_changed', '7.4f')} {'yes' if r.get('on_front') else '':>5s}"
         )
     return "\n".join(lines)
