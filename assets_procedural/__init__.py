@@ -1,6 +1,6 @@
 """Procedural assets: parametric chairs and floor/wall textures, seeded and cached.
 
-Where this sits in the data flow (see ``DESIGN.md`` section 2)::
+Where this sits in the data flow::
 
     preset + seed -> scene sampler (Room presets) --picks--> chair ids, background id
         background id -> background_params() -> (floor texture id, wall texture id)

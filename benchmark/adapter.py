@@ -1,4 +1,4 @@
-"""The one place where the benchmark touches the sVORF model package (DESIGN section 2).
+"""The one place where the benchmark touches the sVORF model package.
 
 Where this sits: protocols never import ``svorf`` directly; they call the
 functions here, so a change in svorf's API is absorbed in one file. What the

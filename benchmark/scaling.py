@@ -1,5 +1,5 @@
 """Scaling from 1 to N workers on this machine: generation (local pool, Ray) and training
-(one process vs ``torchrun`` ranks), as JSON and a PNG figure (issue 8, docs/scaleout.md).
+(one process vs ``torchrun`` ranks), as JSON and a PNG figure (see docs/scaleout.md).
 
 Where it sits: a measurement tool beside the ``benchmark`` protocols, not a protocol (it
 measures the machine, not a model). Every configuration runs as a fresh subprocess of the
@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from scenefmt import atomic_write_json
+from scenefmt.cli_util import DefaultsFormatter, doc_summary
 
 __all__ = ["main", "measure_generation", "measure_training", "scaling_figure"]
 
@@ -186,7 +187,9 @@ def scaling_figure(rows: list[dict[str, Any]], path: Path) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m benchmark.scaling", description=__doc__.split("\n")[0]
+        prog="python -m benchmark.scaling",
+        description=doc_summary(__doc__),
+        formatter_class=DefaultsFormatter,
     )
     ap.add_argument("--out", required=True, help="folder for scaling.json and scaling.png")
     ap.add_argument(

@@ -1,6 +1,6 @@
 """Blender/Cycles dataset generator (uORF-style multi-view object-centric splits).
 
-Data flow (DESIGN.md section 2)::
+Data flow::
 
     presets (registry) -> sampling.make_scene (pure Python, seeded) -> spec.SceneSpec
       -> blender_backend (the only bpy import, lazy) -> imageops -> writer (scenefmt)

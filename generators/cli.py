@@ -13,7 +13,8 @@ instance); ``--shard i/n`` splits a split over plain job arrays. Either way the 
 are the same bytes as a local run, and rerunning resumes. See ``docs/scaleout.md``.
 
 Bad input (unknown preset, --n <= 0, unwritable --out, --resolution < 16, missing
-bpy or ray) prints one line ``generate: error: ...`` and exits with status 2, writing
+bpy or ray) prints one line ``generate: error: ...`` (what was wrong and how to fix it;
+"did you mean ...?" for a misspelt preset or subcommand) and exits with status 2, writing
 nothing.
 """
 
@@ -25,19 +26,16 @@ from pathlib import Path
 
 from generators.presets import PRESETS
 from generators.spec import RenderSettings
+from scenefmt.cli_util import USAGE, OneLineParser, error_line, fail, unknown_choice
 
 _D = RenderSettings()
 
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # one line, exit 2
-        print(f"generate: error: {message}", file=sys.stderr)
-        sys.exit(2)
+#: ``generate SUBCOMMAND ...``; anything else is the options of ``generate`` itself.
+SUBCOMMANDS = ("verify", "preview")
 
 
 def _fail(msg: str) -> int:
-    print(f"generate: error: {msg}", file=sys.stderr)
-    return 2
+    return fail("generate", msg, USAGE)
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -50,8 +48,8 @@ def _shard(text: str) -> tuple[int, int]:
     return i, n
 
 
-def _gen_parser() -> _Parser:
-    ap = _Parser(prog="generate", description="Render a uORF-style multi-view dataset split "
+def _gen_parser() -> OneLineParser:
+    ap = OneLineParser(prog="generate", description="Render a uORF-style multi-view dataset split "
                  "(subcommands: 'generate verify DIR', 'generate preview --preset NAME').")  # fmt: skip
     ap.add_argument("--preset", required=True, help=f"one of: {', '.join(sorted(PRESETS))}")
     ap.add_argument(
@@ -59,7 +57,7 @@ def _gen_parser() -> _Parser:
     )
     ap.add_argument("--n", type=int, default=None, help="scenes (default: the preset's split size)")
     ap.add_argument(
-        "--out", type=Path, default=None, help="split folder (default data/{preset}/{split})"
+        "--out", type=Path, default=None, help="split folder (default: data/{preset}/{split})"
     )
     ap.add_argument(
         "--workers", type=int, default=None, help="worker processes (default: cores // 2, >= 1)"
@@ -68,26 +66,31 @@ def _gen_parser() -> _Parser:
         "--threads",
         type=int,
         default=None,
-        help="Cycles threads per worker (default cores//workers)",
+        help="Cycles threads per worker (default: cores // workers)",
     )
-    ap.add_argument("--resolution", type=int, default=128, help="square image size (>= 16)")
+    ap.add_argument(
+        "--resolution", type=int, default=128, help="square image size in pixels (>= 16)"
+    )
     ap.add_argument("--seed", type=int, default=0, help="dataset seed (>= 0)")
     ap.add_argument(
         "--samples",
         type=int,
         default=_D.samples,
-        help=f"Cycles samples/pixel (default {_D.samples})",
+        help="Cycles samples/pixel",
     )
     ap.add_argument("--denoise", action=argparse.BooleanOptionalAction, default=_D.denoise,
-                    help="OpenImageDenoise (default on)")  # fmt: skip
+                    help="OpenImageDenoise (default: on)")  # fmt: skip
     ap.add_argument(
         "--bounces",
         type=int,
         default=_D.max_bounces,
-        help=f"max bounces (default {_D.max_bounces})",
+        help="max light bounces",
     )
     ap.add_argument(
-        "--shard", type=_shard, default=(0, 1), help="i/n: only scenes with index %% n == i"
+        "--shard",
+        type=_shard,
+        default=(0, 1),
+        help="i/n: only scenes with index %% n == i (default 0/1: all scenes)",
     )
     ap.add_argument(
         "--camera-radius",
@@ -130,7 +133,7 @@ def _generate(argv: list[str]) -> int:
         )  # fmt: skip
         summary = generate_dataset(cfg)
     except (ValueError, BpyMissingError, RayMissingError) as e:
-        return _fail(str(e).splitlines()[0])
+        return _fail(error_line(e))
     except KeyboardInterrupt:
         print("generate: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
@@ -141,9 +144,18 @@ def _generate(argv: list[str]) -> int:
 def _verify(argv: list[str]) -> int:
     from generators.verify import verify_split
 
-    ap = _Parser(prog="generate verify", description="Check a split folder against the format.")
-    ap.add_argument("dir", type=Path)
+    ap = OneLineParser(
+        prog="generate verify",
+        tool="generate",
+        description="Check a split folder against the format.",
+    )
+    ap.add_argument("dir", type=Path, help="split folder (e.g. data/clevr567/train)")
     a = ap.parse_args(argv)
+    if not a.dir.is_dir():
+        return _fail(
+            f"{a.dir}: no such folder; pass a split folder written by `generate` "
+            "(e.g. data/clevr567/train)"
+        )
     problems = verify_split(a.dir)
     if problems:
         for p in problems:
@@ -159,14 +171,29 @@ def _preview(argv: list[str]) -> int:
     from generators.pipeline import GenerateConfig, generate_dataset
     from generators.preview import write_contact_sheet
 
-    ap = _Parser(prog="generate preview", description="Render a few scenes and a contact sheet.")
-    ap.add_argument("--preset", required=True)
-    ap.add_argument("--split", default=None)
-    ap.add_argument("--n", type=int, default=4)
-    ap.add_argument("--out", type=Path, default=None, help="default data/preview/{preset}")
-    ap.add_argument("--resolution", type=int, default=128)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--samples", type=int, default=_D.samples)
+    ap = OneLineParser(
+        prog="generate preview",
+        tool="generate",
+        description="Render a few scenes of a preset and a contact sheet (OUT/preview.png: "
+        "one row per scene; per view RGB | instance ids | depth) to check a preset by eye.",
+    )
+    ap.add_argument("--preset", required=True, help=f"one of: {', '.join(sorted(PRESETS))}")
+    ap.add_argument(
+        "--split", default=None, help="train or test (default: the preset's first split)"
+    )
+    ap.add_argument("--n", type=int, default=4, help="scenes to render (rows of the sheet)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="folder for the scenes (OUT/split) and OUT/preview.png "
+        "(default: data/preview/{preset})",
+    )
+    ap.add_argument(
+        "--resolution", type=int, default=128, help="square image size in pixels (>= 16)"
+    )
+    ap.add_argument("--seed", type=int, default=0, help="dataset seed (>= 0)")
+    ap.add_argument("--samples", type=int, default=_D.samples, help="Cycles samples/pixel")
     a = ap.parse_args(argv)
     out = a.out if a.out is not None else Path("data") / "preview" / a.preset
     try:
@@ -174,7 +201,7 @@ def _preview(argv: list[str]) -> int:
                              resolution=a.resolution, seed=a.seed, samples=a.samples)  # fmt: skip
         generate_dataset(cfg)
     except (ValueError, BpyMissingError) as e:
-        return _fail(str(e).splitlines()[0])
+        return _fail(error_line(e))
     path = write_contact_sheet(out / "split", out / "preview.png", a.n)
     print(
         f"generate preview: {path} (rows = scenes; per view: RGB | instance ids | depth, "
@@ -184,11 +211,18 @@ def _preview(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``generate`` console script; returns the exit status (a bad
+    command line exits with status 2 from the parser)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "verify":
         return _verify(argv[1:])
     if argv and argv[0] == "preview":
         return _preview(argv[1:])
+    if argv and not argv[0].startswith("-"):  # no positional arguments: a misspelt command
+        return _fail(
+            f"{unknown_choice(argv[0], SUBCOMMANDS, 'command')}; to render a split run "
+            "`generate --preset NAME ...` (see `generate --help`)"
+        )
     return _generate(argv)
 
 

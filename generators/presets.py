@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 from scenefmt.clevr import CLEVR_COLORS, CLEVR_SIZES  # re-exported: presets use both
+from scenefmt.cli_util import choose
 
 CLEVR_SHAPES: tuple[str, ...] = ("cube", "sphere", "cylinder")
 
@@ -339,13 +340,9 @@ register(
 
 
 def get_preset(name: str) -> Preset:
-    """The registered preset ``name``; ValueError listing the known ones otherwise."""
-    try:
-        return PRESETS[name]
-    except KeyError:
-        raise ValueError(
-            f"unknown preset {name!r}; known presets: {', '.join(sorted(PRESETS))}"
-        ) from None
+    """The registered preset ``name``; otherwise a one-line ValueError that lists the
+    known ones (and says "did you mean ...?" for a near miss)."""
+    return PRESETS[choose(name, sorted(PRESETS), "preset")]
 
 
 def scene_preset(preset: Preset) -> Preset:

@@ -25,8 +25,10 @@ model on clevr567-heldout, clevr567-gray or packed-clevr11 test data);
 ``--allow-preset-mismatch`` renders any other pair.
 
 Bad input (unknown preset or scale, a data folder that is not a split or does not fit
-the preset or scale, a corrupt checkpoint) prints one line ``svorf: error: ...`` and
-exits with status 2; a diverged training run exits with status 1.
+the preset or scale, a run folder that already holds a run without ``--resume``, a
+corrupt checkpoint) prints one line ``svorf: error: ...`` that says what was wrong and
+how to fix it ("did you mean ...?" for a misspelt name), and exits with status 2; a
+diverged training run exits with status 1.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from scenefmt.cli_util import RUNTIME, USAGE, OneLineParser, error_line, fail
 
 if TYPE_CHECKING:
     from svorf.config import ModelConfig
@@ -56,18 +60,17 @@ GENERALIZATION_TEST_DATA: dict[str, tuple[str, ...]] = {
 }
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line usage errors (``svorf: error: ...``, exit status 2)."""
-
-    def error(self, message: str):  # type: ignore[override]
-        self.exit(2, f"svorf: error: {self.prog}: {message} (see `{self.prog} --help`)\n")
+_SCALE_HELP = (
+    "model and schedule size: smoke (seconds; tests), cpu (about an hour on a CPU), "
+    "paper (the paper's model and schedule; GPUs)"
+)
 
 
 def _parser() -> argparse.ArgumentParser:
     from svorf.train import PRESETS, SCALES
 
-    p = _Parser(prog="svorf", description="Train and inspect sVORF models.")
-    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    p = OneLineParser(prog="svorf", description="Train and inspect sVORF models.")
+    sub = p.add_subparsers(dest="command", required=True)
 
     t = sub.add_parser("train", help="train a model on a generated split")
     t.add_argument("--data", required=True, help="training split folder (e.g. data/clevr567/train)")
@@ -77,11 +80,15 @@ def _parser() -> argparse.ArgumentParser:
         choices=sorted(PRESETS),
         help="training preset (sets the slot count; must match the data)",
     )
-    t.add_argument("--scale", required=True, choices=SCALES, help="model and schedule size")
+    t.add_argument("--scale", required=True, choices=SCALES, help=_SCALE_HELP)
     t.add_argument("--out", required=True, help="run folder (checkpoint, logs)")
     t.add_argument("--steps", type=int, help="total optimizer steps (default: the scale's)")
-    t.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
-    t.add_argument("--seed", type=int, help="random seed (default 0)")
+    t.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its checkpoint.pt (a rerun without it is refused)",
+    )
+    t.add_argument("--seed", type=int, help="random seed (default: 0)")
     t.add_argument("--eval-data", help="held-out split evaluated every eval_every steps")
     t.add_argument("--image-size", type=int, help="training resolution (default: the scale's)")
     t.add_argument("--device", help="auto (default), cpu, cuda or cuda:N")
@@ -125,9 +132,11 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
 
     i = sub.add_parser("info", help="print the parameter count of a scale")
-    i.add_argument("--scale", required=True, choices=SCALES)
-    i.add_argument("--preset", default="clevr567", choices=sorted(PRESETS))
-    i.add_argument("--image-size", type=int)
+    i.add_argument("--scale", required=True, choices=SCALES, help=_SCALE_HELP)
+    i.add_argument(
+        "--preset", default="clevr567", choices=sorted(PRESETS), help="sets the slot count"
+    )
+    i.add_argument("--image-size", type=int, help="resolution (default: the scale's)")
     return p
 
 
@@ -178,6 +187,17 @@ def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
         )
 
 
+def _check_out(out: str, resume: bool) -> None:
+    """Refuse, before any work, to start a new run in a folder that holds one already."""
+    from svorf.train import CHECKPOINT_NAME
+
+    if not resume and (Path(out) / CHECKPOINT_NAME).exists():
+        raise _UsageError(
+            f"--out {out} already holds a run ({CHECKPOINT_NAME}); pass --resume to "
+            "continue it, or --out DIR to start a new run elsewhere"
+        )
+
+
 def _preset_for(data_preset: object) -> str:
     from svorf.train import PRESETS
 
@@ -202,6 +222,7 @@ def _cmd_train(a: argparse.Namespace) -> int:
         _set_threads(a.threads)
     if a.minutes is not None and not (a.minutes > 0 and math.isfinite(a.minutes)):
         raise _UsageError(f"--minutes must be a positive number, got {a.minutes}")
+    _check_out(a.out, a.resume)
     overrides = {
         k: v
         for k, v in (("steps", a.steps), ("seed", a.seed), ("device", a.device))
@@ -357,12 +378,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return cmd(args)
     except TrainingDiverged as e:
-        print(f"svorf: error: {e}", file=sys.stderr)
-        return 1
+        return fail("svorf", error_line(e), RUNTIME)
     except (_UsageError, DatasetError, CheckpointError, ValueError, FileNotFoundError) as e:
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        print(f"svorf: error: {msg}", file=sys.stderr)
-        return 2
+        return fail("svorf", error_line(e), USAGE)
     except KeyboardInterrupt:
         print("svorf: interrupted", file=sys.stderr)
         return 130

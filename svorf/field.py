@@ -17,7 +17,7 @@ e.g. after an object transform), P points per scene (= R rays x N samples), D sl
 W mlp width, Cx / Cd widths of gamma(x) / gamma(d), n selected (scene, slot, point) pairs,
 T tiles of S rows.
 
-Evaluation cost (DESIGN 8/9; measured at the ``cpu`` scale, 2 threads, fp32): the per-slot
+Evaluation cost (measured at the ``cpu`` scale, 2 threads, fp32): the per-slot
 MLPs are memory-bound, so what counts is how many [pairs x W] activations are written.
 
 - Dense (:meth:`ObjectFields.eval_fields`): every slot at every point, one ``baddbmm`` per

@@ -16,7 +16,7 @@ and colours, composed with the slot-guided masks m (``compose``) -> volume rende
 hierarchical sampling (``render``); the coarse pass uses the same network as the fine pass
 (one set of fields; the paper's parameter count leaves no room for a second hypernetwork).
 
-Per-point cost (DESIGN 8/9, issue 6): the slot masks m are computed first (they need only
+Per-point cost (the speed knobs of ``ModelConfig``): the slot masks m are computed first (they need only
 gamma(x) and the slots; the composer is folded into per-scene matrices, exactly), then the
 object fields are evaluated only at the (point, slot) pairs that matter: unmasked slots,
 foreground slots inside ``fg_box``, and with ``slot_topk`` / ``slot_keep_mass`` the slots

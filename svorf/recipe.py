@@ -1,4 +1,4 @@
-"""CPU-scale training recipe for sVORF (issue 6): time-budgeted training with held-out
+"""CPU-scale training recipe for sVORF: time-budgeted training with held-out
 segmentation metrics over wall-clock time, and the recipe's levers as config fields.
 
 Where it sits: on top of ``svorf.train.train`` (which it calls with ``max_wall_s`` and an
@@ -35,7 +35,6 @@ Measurements and the recommended command are in docs/notes/cpu_recipe.md.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -48,6 +47,7 @@ import torch
 from torch import Tensor
 
 from scenefmt import atomic_write_json
+from scenefmt.cli_util import USAGE, OneLineParser, doc_summary, fail
 from svorf.config import ModelConfig
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
@@ -470,34 +470,47 @@ def _benchmark_metrics() -> SegMetricsFn | None:
     return segmentation_metrics
 
 
+_PROG = "python -m svorf.recipe"
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m svorf.recipe", description=__doc__.split("\n")[0])
+    """``python -m svorf.recipe train-eval|diagnose|plot``; returns the exit status (a bad
+    command line prints one line ``python -m svorf.recipe: error: ...``, status 2)."""
+    from svorf.train import CHECKPOINT_NAME, PRESETS
+
+    ap = OneLineParser(
+        prog=_PROG,
+        description=doc_summary(__doc__),
+        epilog="Measurements and the recommended command: docs/notes/cpu_recipe.md.",
+    )
     sub = ap.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train-eval", help="time-budgeted cpu-recipe training with held-out eval")
-    t.add_argument("--data", required=True)
-    t.add_argument("--test", required=True)
-    t.add_argument("--out", required=True)
-    t.add_argument("--minutes", type=float, required=True)
-    t.add_argument("--preset", default="clevr567")
-    t.add_argument("--resume", action="store_true")
-    t.add_argument("--threads", type=int, default=2)
-    t.add_argument("--eval-every", type=int, default=150)
-    t.add_argument("--eval-scenes", type=int, default=8)
-    t.add_argument("--grid-scenes", type=int, default=6)
+    t.add_argument("--data", required=True, help="training split folder")
+    t.add_argument("--test", required=True, help="held-out split (with instance ids)")
+    t.add_argument("--out", required=True, help="run folder")
+    t.add_argument("--minutes", type=float, required=True, help="training wall-time budget")
+    t.add_argument("--preset", default="clevr567", choices=sorted(PRESETS), help="training preset")
+    t.add_argument("--resume", action="store_true", help="continue the run in --out")
+    t.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    t.add_argument("--eval-every", type=int, default=150, help="held-out eval every N steps")
+    t.add_argument("--eval-scenes", type=int, default=8, help="scenes of each held-out eval")
+    t.add_argument("--grid-scenes", type=int, default=6, help="scenes in grid.png")
     t.add_argument("--final-scenes", type=int, default=None, help="default: all test scenes")
     t.add_argument("--train-scenes", type=int, default=None, help="default: all (overfit checks)")
-    t.add_argument("--ray-sampling", default=None)
-    t.add_argument("--nvs-warmup", type=int, default=None)
+    t.add_argument("--ray-sampling", default=None, help="lever (default: the recipe's)")
+    t.add_argument("--nvs-warmup", type=int, default=None, help="lever (default: the recipe's)")
     t.add_argument("--fg-zmin", type=float, default=None, help="negative = off")
     t.add_argument("--fg-box", type=float, default=None, help="<= 0 = off")
-    t.add_argument("--comp-temperature", type=float, default=None)
-    t.add_argument("--coord-frame", choices=("input_azimuth", "world"), default=None)
+    t.add_argument("--comp-temperature", type=float, default=None,
+                   help="lever (default: the recipe's)")  # fmt: skip
+    t.add_argument("--coord-frame", choices=("input_azimuth", "world"), default=None,
+                   help="networks' frame (default: the scale's)")  # fmt: skip
     t.add_argument("--bg-outside-fg", type=int, default=None, help="1 = on, 0 = off")
-    t.add_argument("--lr", type=float, default=None)
-    t.add_argument("--warmup", type=int, default=None)
-    t.add_argument("--batch-scenes", type=int, default=None)
-    t.add_argument("--rays-per-scene", type=int, default=None)
-    t.add_argument("--seed", type=int, default=None)
+    t.add_argument("--lr", type=float, default=None, help="default: the recipe's")
+    t.add_argument("--warmup", type=int, default=None, help="default: the recipe's")
+    t.add_argument("--batch-scenes", type=int, default=None, help="default: the recipe's")
+    t.add_argument("--rays-per-scene", type=int, default=None, help="default: the recipe's")
+    t.add_argument("--seed", type=int, default=None, help="default: 0")
     t.add_argument(
         "--model-set",
         action="append",
@@ -513,22 +526,30 @@ def main(argv: list[str] | None = None) -> int:
     dg.add_argument("run", help="a recipe or svorf run folder (checkpoint.pt)")
     dg.add_argument("--test", required=True, help="held-out split with instance ids")
     dg.add_argument("--scenes", type=int, default=None, help="default: all test scenes")
-    dg.add_argument("--threads", type=int, default=2)
+    dg.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     pl = sub.add_parser("plot", help="loss and held-out FG-ARI of runs over wall time (PNG)")
     pl.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     pl.add_argument("--out", required=True, help="PNG path")
-    a = ap.parse_args(argv)
+    try:
+        a = ap.parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2), already printed
+        return int(e.code or 0)
     if a.cmd == "plot":
         runs = dict(x.split("=", 1) if "=" in x else (Path(x).name, x) for x in a.runs)
         missing = [r for r in runs.values() if not (Path(r) / "log.jsonl").is_file()]
         if missing:
-            raise SystemExit(f"plot: not a recipe run folder (no log.jsonl): {missing[0]}")
+            return fail(_PROG, f"plot: {missing[0]}: not a recipe run folder (no log.jsonl); "
+                        "pass folders written by `train-eval` as LABEL=RUN_DIR")  # fmt: skip
         print(plot_runs(runs, a.out))
         return 0
+    if a.cmd == "diagnose" and not (Path(a.run) / CHECKPOINT_NAME).is_file():
+        return fail(_PROG, f"diagnose: no {CHECKPOINT_NAME} in {a.run} (not a run folder); "
+                    "pass a folder written by `train-eval` or `svorf train`")  # fmt: skip
+    if a.cmd == "train-eval" and not a.resume and (Path(a.out) / CHECKPOINT_NAME).exists():
+        return fail(_PROG, f"train-eval: --out {a.out} already holds a run ({CHECKPOINT_NAME}); "
+                    "pass --resume to continue it, or --out DIR to start a new run elsewhere")  # fmt: skip
     torch.set_num_threads(a.threads)
     if a.cmd == "diagnose":
-        if not (Path(a.run) / "checkpoint.pt").is_file():
-            raise SystemExit(f"diagnose: no checkpoint.pt in {a.run} (not a run folder)")
         model, info = load_run(Path(a.run))
         test = MultiViewDataset(a.test, image_size=model.cfg.image_size, max_scenes=a.scenes)
         res = {"step": info.step, **failure_breakdown(model, test)}
@@ -562,7 +583,7 @@ def main(argv: list[str] | None = None) -> int:
 def _parse_set(item: str) -> tuple[str, Any]:
     """ "field=value" -> (field, JSON value or the raw string)."""
     if "=" not in item:
-        raise SystemExit(f"--model-set expects FIELD=VALUE, got {item!r}")
+        raise SystemExit(fail(_PROG, f"--model-set expects FIELD=VALUE, got {item!r}", USAGE))
     key, raw = item.split("=", 1)
     try:
         return key.strip(), json.loads(raw)

@@ -1,4 +1,4 @@
-"""Speed of a training step for each speed knob of ModelConfig (DESIGN 8, issue 6).
+"""Speed of a training step for each speed knob of ModelConfig, and each knob's error.
 
 Where it sits: a measuring tool beside the model (not used by training). It builds one model
 per variant (same weights), then times (a) forward + loss + backward of a batch like one
@@ -6,7 +6,7 @@ training step (default 4 scenes x 256 rays, the cpu scale's) and (b) the per-poi
 evaluation alone (hypernetwork, slot masks, object fields, composition at every sample,
 forward + backward), with the variants **interleaved** (repeat r runs every variant once, in
 turn), so that the load of other processes on a shared 2-core machine hits them alike; it
-reports medians and ratios to the code before issue 6 (``original``). It also reports, per
+reports medians and ratios to the model without any speed knob (``original``). It also reports, per
 variant, how far its evaluation render (no jitter, same weights, same rays) is from the
 knob-free model's: the time-vs-error pair of each knob; and, in a fresh subprocess per
 variant, the peak resident memory of a few training steps.
@@ -19,7 +19,7 @@ Usage::
 every variant, so the knobs are timed on the model the recipe trains.
 
 Variants: ``original`` (every knob off and the composer in its paper form
-``SlotGuidedComposer.logits_reference``: the code before issue 6, the reference of every
+``SlotGuidedComposer.logits_reference``: the model before any speed work, the reference of every
 ratio), ``baseline`` (every knob off: the paper's method, with the exact folded composer),
 one per knob, ``all`` (every knob), ``default`` (what ``model_config(scale)`` turns on).
 The ``sharp-m`` variants scale the composition logits (x ``--sharpen``) in *both* the
@@ -54,6 +54,7 @@ import torch
 import torch.nn.functional as F
 
 from scenefmt import mkstemp_beside
+from scenefmt.cli_util import DefaultsFormatter, doc_summary
 
 from .compose import masked_softmax
 from .config import ModelConfig, bf16_native, model_config
@@ -436,7 +437,9 @@ def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m svorf.speedbench", description=__doc__.split("\n\n")[0]
+        prog="python -m svorf.speedbench",
+        description=doc_summary(__doc__),
+        formatter_class=DefaultsFormatter,
     )
     ap.add_argument("--scale", default="cpu", choices=["smoke", "cpu", "paper"])
     ap.add_argument("--scenes", type=int, default=4, help="scenes per step (B)")

@@ -25,7 +25,7 @@ Data parallel: under ``torchrun`` (a process group initialised by ``svorf.cli`` 
 folder. The result matches a single-process run with the same configs up to float
 summation order (see ``svorf.distributed`` for how the random draws are kept identical).
 
-Nothing here imports ``benchmark`` or ``generators`` (DESIGN.md section 2): held-out
+Nothing here imports ``benchmark`` or ``generators`` (svorf stands alone): held-out
 metrics such as ARI are plugged in by the caller through ``eval_fn``.
 """
 
@@ -50,6 +50,7 @@ import torch
 from torch import Tensor
 
 from scenefmt import atomic_write_bytes, atomic_write_json
+from scenefmt.cli_util import choose
 from svorf import distributed
 from svorf.config import ModelConfig, bf16_autocast_on, model_config
 from svorf.data import RAY_SAMPLING, MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
@@ -245,8 +246,7 @@ def train_config(scale: str, preset: str = "clevr567", **overrides: Any) -> Trai
     and batch 16 on 8 GPUs for ~7 h; it does not give the number of steps. 150k is an
     assumption of ~0.17 s per step over those 7 h.
     """
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
+    choose(preset, sorted(PRESETS), "preset")
     if scale == "smoke":
         base = TrainConfig(
             steps=30,
@@ -284,7 +284,8 @@ def train_config(scale: str, preset: str = "clevr567", **overrides: Any) -> Trai
             ckpt_every=5000,
         )
     else:
-        raise ValueError(f"unknown scale {scale!r}; choose from {list(SCALES)}")
+        choose(scale, SCALES, "scale")  # raises: not one of SCALES
+        raise AssertionError(scale)  # a scale of SCALES without a branch above
     return base.replace(**overrides)
 
 
@@ -354,10 +355,8 @@ def run_configs(
     TrainConfig field) are applied last. This is the one place that decides a scale's
     configs: the benchmark's ``--scale`` goes through it too.
     """
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
-    if scale not in SCALES:
-        raise ValueError(f"unknown scale {scale!r}; choose from {list(SCALES)}")
+    choose(preset, sorted(PRESETS), "preset")
+    choose(scale, SCALES, "scale")
     spec = PRESETS[preset]
     mcfg = model_config(scale, num_slots=spec.num_slots, image_size=image_size)
     if spec.slot_mask_train:

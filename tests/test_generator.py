@@ -45,7 +45,7 @@ def test_config_defaults_and_validation():
     assert GenerateConfig(preset="packed-clevr11").split_name() == "test"
     r = GenerateConfig(preset="clevr567", samples=3, denoise=False, bounces=2).render_settings()
     assert (r.samples, r.denoise, r.max_bounces, r.diffuse_bounces) == (3, False, 2, 2)
-    for kw, msg in [({"preset": "nope"}, "known presets: clevr567"), ({"n": 0}, "--n"),
+    for kw, msg in [({"preset": "nope"}, "choose from clevr567"), ({"n": 0}, "--n"),
                     ({"resolution": 15}, "--resolution"), ({"split": "val"}, "split"),
                     ({"shard": (2, 2)}, "--shard"), ({"workers": 0}, "--workers")]:  # fmt: skip
         with pytest.raises(ValueError, match=msg):
@@ -57,7 +57,7 @@ def test_config_defaults_and_validation():
 @pytest.mark.parametrize(
     "args,msg",
     [
-        (["--preset", "nope"], "unknown preset 'nope'; known presets"),
+        (["--preset", "nope"], "unknown preset 'nope' (choose from clevr567"),
         (["--preset", "clevr567", "--n", "0"], "--n"),
         (["--preset", "clevr567", "--n", "-3"], "--n"),
         (["--preset", "clevr567", "--resolution", "8"], "--resolution"),

@@ -162,7 +162,7 @@ def test_projection_matches_raycast_depth(scenes):
 
 def test_all_presets_registered():
     assert {"clevr567", "clevr567-heldout", "packed-clevr11", "clevr567-gray"} <= set(PRESETS)
-    with pytest.raises(ValueError, match="known presets"):
+    with pytest.raises(ValueError, match="unknown preset .*choose from"):
         get_preset("nope")
 
 

@@ -1,4 +1,4 @@
-"""Benchmark protocols (DESIGN section 6), one function each: ``fn(ctx) -> report path``.
+"""Benchmark protocols, one function each: ``fn(ctx) -> report path``.
 
 - ``segmentation``, ``nvs``, ``ablation``, ``generalization``: the paper's tables
   (:mod:`.tables`).
@@ -13,13 +13,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 from benchmark.runner import Context
+from scenefmt.cli_util import choose
 
 __all__ = ["PROTOCOLS", "TABLE_PROTOCOLS", "NotImplementedProtocol", "get_protocol"]
 
 
 class NotImplementedProtocol(NotImplementedError):
-    """A protocol named in DESIGN section 6 that has no implementation yet (none today;
-    kept so that callers catching it keep working)."""
+    """A listed protocol that has no implementation yet (none today; kept so that
+    callers catching it keep working)."""
 
 
 def _lazy(module: str, name: str) -> Callable[[Context], Path]:
@@ -32,7 +33,7 @@ def _lazy(module: str, name: str) -> Callable[[Context], Path]:
     return run
 
 
-#: Protocol name -> function. Every name of DESIGN section 6 is present.
+#: Protocol name -> function: every protocol of ``benchmark.schema.PROTOCOLS``.
 PROTOCOLS: dict[str, Callable[[Context], Path]] = {
     "segmentation": _lazy("tables", "run_segmentation"),
     "nvs": _lazy("tables", "run_nvs"),
@@ -50,10 +51,6 @@ TABLE_PROTOCOLS: tuple[str, ...] = ("segmentation", "nvs", "ablation", "generali
 
 
 def get_protocol(name: str) -> Callable[[Context], Path]:
-    """The protocol function; ValueError naming the known protocols otherwise."""
-    try:
-        return PROTOCOLS[name]
-    except KeyError:
-        raise ValueError(
-            f"unknown protocol {name!r}; choose one of {', '.join(PROTOCOLS)}"
-        ) from None
+    """The protocol function; a one-line ValueError naming the known protocols otherwise
+    ("did you mean ...?" for a near miss)."""
+    return PROTOCOLS[choose(name, PROTOCOLS, "protocol")]

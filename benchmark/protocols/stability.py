@@ -1,9 +1,9 @@
 """``stability`` protocol: volume rendering under stress against a float64 reference.
 
-Where this sits: DESIGN section 8 asks for "float32 log-space transmittance even
-under autocast, bounded densities, guarded divisions, no NaN/Inf anywhere;
-stress tests with extreme densities, distances and dtypes against a float64
-reference". This protocol feeds ``svorf.render.volume_render`` (through the
+Where this sits: volume rendering must keep float32 log-space transmittance even
+under autocast, bounded densities, guarded divisions and no NaN/Inf anywhere, checked
+by stress tests with extreme densities, distances and dtypes against a float64
+reference. This protocol feeds ``svorf.render.volume_render`` (through the
 adapter) rays with extreme densities (0 ... 1e38, inf), distances (1e-6 ... 1e6,
 coincident samples), many samples, and inputs in float16 / bfloat16 / float32 /
 float64 and under bf16 autocast; compares colour, opacity and depth with

@@ -1,7 +1,7 @@
-"""``tradeoff`` protocol: a measured time-vs-error curve for every speed knob (DESIGN 8).
+"""``tradeoff`` protocol: a measured time-vs-error curve for every speed knob.
 
-Where this sits: DESIGN section 8 asks that "every speed knob has a measured time-vs-error
-curve". The knobs are the ``ModelConfig`` fields that trade accuracy for speed
+Where this sits: every speed knob must come with a measured time-vs-error curve, so that
+its cost in accuracy is known before it is switched on. The knobs are the ``ModelConfig`` fields that trade accuracy for speed
 (``bf16_autocast``, ``slot_keep_mass``, ``slot_topk``, ``fg_box``) plus the samples per ray
 (``n_coarse`` / ``n_fine``) and two knob combinations (the scale's defaults, every knob).
 Each knob is swept over a few settings; each setting is one point:
@@ -34,7 +34,7 @@ Weights (each a table of its own, with its own baseline):
 
 Inputs are speedbench's batch (random images, rays from ~11.7 units into the scene box),
 not dataset scenes, so no dataset is needed; the report says so. These rows are the
-``"curve": "step"`` rows. Three more curves (issue 7):
+``"curve": "step"`` rows. Three more curves:
 
 - ``render`` (rows ``"curve": "render"``): evaluation render time per view (svorf's
   ``predict_scene``: encode, ``render_chunked``) over samples per ray, ``clip_to_box`` flipped,
