@@ -1,4 +1,4 @@
-"""The on-disk dataset contract, defined once (DESIGN.md section 3).
+"""The on-disk dataset contract, defined once (docs/format.md is its description).
 
 Writers (``generators``) and readers (``svorf.data``, ``benchmark``) both import
 this package, so nothing else re-implements file names or conventions. It

@@ -98,7 +98,7 @@ class ModelConfig:
     """Density activation. Paper silent; softplus keeps gradients alive and, with the large
     last interval, bounds d(rgb)/d(raw density) (ReLU does not)."""
     sigma_max: float = 1e4
-    """Upper clamp of every object density (1/world unit): bounded densities (DESIGN 8)."""
+    """Upper clamp of every object density (1/world unit): bounded densities."""
 
     # ---- composition (paper 3.3 "Composing Mechanism", ablations) ----
     composition: Composition = "slot_guided"
@@ -109,7 +109,7 @@ class ModelConfig:
     comp_heads: int = 4
     """Heads of the D^c cross-attention. Paper silent."""
 
-    # ---- rendering (paper appendix A "Training details", DESIGN 3) ----
+    # ---- rendering (paper appendix A "Training details") ----
     n_coarse: int = 64
     """Stratified samples per ray. Paper: 64."""
     n_fine: int = 128
@@ -119,7 +119,7 @@ class ModelConfig:
     box_half: float = 4.5
     """Half side of the scene box [-box_half, box_half]^3 (world units). Positions are divided
     by it before gamma(x) so the scene maps to [-1, 1]^3; with clip_to_box it also bounds
-    the samples. DESIGN: every dataset keeps its content inside +-4.5."""
+    the samples. Every dataset keeps its content inside +-4.5."""
     clip_to_box: bool = False
     """Clip [near, far] of each ray to the scene box so samples lie only inside the scene
     (denser sampling for the same N). The paper samples [near, far]: off at paper scale."""
@@ -130,7 +130,7 @@ class ModelConfig:
     on: the object fields live in the input viewer's azimuth frame). A single image does
     not tell the camera's azimuth in a scene whose content is rotation-symmetric in
     distribution, so world coordinates cannot be predicted from it; without this the cpu
-    scale learned only a rotation-averaged "mean scene" (DESIGN 9). The locality priors
+    scale learned only a rotation-averaged "mean scene" (docs/notes/cpu_recipe.md). The locality priors
     (``fg_box``, ``fg_zmin``, ``clip_to_box``) stay in the world frame. "world": the
     dataset's world frame. Renders pass the input camera as ``input_c2w``; without it the
     input camera is taken to be at azimuth 0. Configs saved before this field existed
@@ -153,7 +153,7 @@ class ModelConfig:
     """Slots randomly masked off per scene per training step (packed-CLEVR-11 setting: 4 of 11).
     The background slot is never masked."""
 
-    # ---- speed knobs (DESIGN 8; all off at paper scale, tolerances in tests/test_speed_knobs.py,
+    # ---- speed knobs (all off at paper scale, tolerances in tests/test_speed_knobs.py,
     # speeds from ``python -m svorf.speedbench``) ----
     bf16_autocast: bool | str = False
     """Run the hypernetwork, the per-point MLPs and the composition under bfloat16 autocast
@@ -186,7 +186,7 @@ class ModelConfig:
     saving grows as m sharpens during training (at initialisation m is nearly uniform and
     nearly every slot is kept). slot_guided only, ignored otherwise. 1.0 = off (paper)."""
 
-    # ---- evaluation-only speed knobs (DESIGN 8 "skip what a scene does not need"): read only
+    # ---- evaluation-only speed knobs ("skip what a scene does not need"): read only
     # on the evaluation render path (no gradient, deterministic samples: ``render_chunked``,
     # ``predict_scene``), never in training; measured by ``benchmark run tradeoff``. Left out
     # of ``to_dict`` while off, so run keys and saved configs of earlier runs are unchanged ----
@@ -532,7 +532,7 @@ def model_config(
         base = ModelConfig()
         size = 256
     elif scale == "cpu":
-        # Tuned later by the training engineer; see DESIGN 9 for what was measured.
+        # Tuned later by the training engineer; docs/notes/cpu_recipe.md says what was measured.
         base = ModelConfig(
             enc_width=32,
             enc_blocks=(1, 1, 1),

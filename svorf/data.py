@@ -730,7 +730,7 @@ def object_heavy_rays(
     fraction: float = OBJECT_HEAVY_FRACTION,
     threshold: float = OBJECT_HEAVY_THRESHOLD,
 ) -> Tensor:
-    """Label-free object-heavy sampling (DESIGN.md section 9; no ground-truth masks).
+    """Label-free object-heavy sampling (no ground-truth masks).
 
     ``round(fraction * n)`` rays come uniformly (with replacement) from the salient
     pixels of :func:`salient_pixels` over all target views; the rest, or all ``n`` when

@@ -64,7 +64,7 @@ class ImageEncoder(nn.Module):
 
     Input ``images`` [B, 3, H, W] with values in [0, 1] (H, W multiples of 8); they are
     mapped to [-1, 1] here (with PyTorch-style [0, 1] inputs and default biases the features
-    were found to be nearly image-independent, DESIGN 9). Output [B, feat_dim, H/2, W/2].
+    were found to be nearly image-independent, docs/notes/cpu_recipe.md). Output [B, feat_dim, H/2, W/2].
     """
 
     def __init__(

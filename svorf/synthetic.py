@@ -44,7 +44,7 @@ from scenefmt.clevr import CLEVR_COLORS, CLEVR_SIZES
 
 __all__ = ["RIG_ELEVATION_DEG", "RIG_RADIUS", "look_at_opencv", "write_synthetic_split"]
 
-#: Standard camera rig (DESIGN.md section 4).
+#: Standard camera rig.
 RIG_RADIUS = 12.4
 RIG_ELEVATION_DEG = 40.0
 #: Focal length as a fraction of the image width (50 mm lens, 36 mm sensor).

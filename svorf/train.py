@@ -218,7 +218,7 @@ class PresetSpec:
 
 #: Training presets. The paper's K per dataset (appendix A): 8 for CLEVR-567, 5 for the
 #: Room datasets; the packed-CLEVR-11 setting trains on CLEVR-567 with 11 slots, 4 of them
-#: masked off per step (DESIGN.md section 5). "synthetic" is the test split of
+#: masked off per step. "synthetic" is the test split of
 #: ``svorf.synthetic`` (2-3 spheres).
 PRESETS: dict[str, PresetSpec] = {
     "clevr567": PresetSpec(8, ("clevr567",)),
@@ -261,7 +261,7 @@ def train_config(scale: str, preset: str = "clevr567", **overrides: Any) -> Trai
         # ~1 h on 2 cores: one step of the cpu model (K=8, 16+16 samples) at 4 x 128 rays
         # took 1.2-1.9 s on a shared, overloaded 2-core Xeon (4 x 256: 2.6-3.1 s), about
         # 0.9 s when the machine is quiet. Object-heavy rays because uniform rays left the
-        # DESIGN section 9 calibration model on a "mean scene" plateau.
+        # the calibration model of docs/notes/cpu_recipe.md on a "mean scene" plateau.
         base = TrainConfig(
             steps=4000,
             batch_scenes=4,

@@ -1,4 +1,4 @@
-"""Evaluation-only speed knobs of the model (DESIGN 8: "early termination of opaque rays at
+"""Evaluation-only speed knobs of the model ("early termination of opaque rays at
 evaluation", fine samples only where the coarse weights are non-negligible):
 ``ModelConfig.eval_early_stop`` and ``ModelConfig.eval_fine_min_weight``.
 

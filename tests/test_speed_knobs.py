@@ -1,4 +1,4 @@
-"""Speed knobs of ModelConfig (DESIGN 8, issue 6): each changes results only within its stated
+"""Speed knobs of ModelConfig: each changes results only within its stated
 tolerance, or not at all where it should be exact (svorf.field.eval_pairs, the folded
 composer, svorf.model slot selection, bf16 autocast, fg_box, svorf.speedbench).
 

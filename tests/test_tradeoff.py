@@ -1,4 +1,4 @@
-"""The ``tradeoff`` benchmark protocol (DESIGN 8: every speed knob has a measured
+"""The ``tradeoff`` benchmark protocol (every speed knob has a measured
 time-vs-error curve) at smoke scale: report schema, curves, exact points, figure, page.
 
 No timing assertions (shared machines are noisy): only what holds by construction.
