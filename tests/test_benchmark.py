@@ -466,8 +466,10 @@ def _fake_generator(monkeypatch, calls):
         out: Path
         resolution: int = 128
         samples: int = 16
+        denoise: bool = True
         seed: int = 0
         progress: bool = True
+        workers: int | None = None
 
     def generate_dataset(cfg: GenerateConfig) -> Path:
         calls.append(cfg)
@@ -689,9 +691,9 @@ def test_speed_protocol_on_synthetic_data(tmp_path):
 
 def _generator_ready() -> bool:
     try:
-        from benchmark.generator_bridge import _entry_point
+        from benchmark.generator_bridge import entry_point
 
-        _entry_point()
+        entry_point()
     except Exception:  # noqa: BLE001 - any failure means "not ready here"
         return False
     # find_spec, not import: importing bpy here would break the generator's own import

@@ -214,13 +214,11 @@ def test_manifest_and_scene_json_contents(split):
 def test_benchmark_bridge_finds_our_entry_point_and_fields():
     from benchmark import generator_bridge as gb
 
-    mod, fn = gb._entry_point()
-    assert mod.__name__ == "generators.pipeline"
-    cls = gb._config_class(mod, fn)
-    assert cls is GenerateConfig
+    cls, fn = gb.entry_point()
+    assert cls is GenerateConfig and fn.__module__ == "generators.pipeline"
     fields = {f.name for f in dataclasses.fields(cls)}
     assert {"preset", "split", "n", "out", "resolution", "seed", "progress", "samples",
-            "denoise", "workers"} <= fields  # fmt: skip
+            "denoise", "workers", "backend", "address"} <= fields  # fmt: skip
     assert set(gb.known_presets()) >= {"clevr567", "clevr567-gray"}
 
 
@@ -230,12 +228,19 @@ def test_bridge_call_reaches_generate_dataset(tmp_path, monkeypatch):
 
     seen = []
     monkeypatch.setattr(pl, "generate_dataset", lambda cfg: seen.append(cfg))
-    monkeypatch.setattr(gb, "_entry_point", lambda: (pl, pl.generate_dataset))
     gb.generate(tmp_path, preset="clevr567", split="test", n_scenes=3, resolution=32,
                 samples=2, denoise=False, seed=5, progress=False, workers=1)  # fmt: skip
-    (cfg,) = seen
+    gb.generate(tmp_path, preset="clevr567", split="test", n_scenes=3, resolution=32,
+                samples=None, denoise=None, seed=5, progress=False)  # fmt: skip
+    cfg, default = seen
     assert (cfg.preset, cfg.split, cfg.n, cfg.out, cfg.resolution, cfg.samples, cfg.denoise,
             cfg.seed, cfg.workers) == ("clevr567", "test", 3, tmp_path, 32, 2, False, 5, 1)  # fmt: skip
+    # None keeps the generator's own defaults.
+    fresh = GenerateConfig(preset="clevr567", split="test", n=3, out=tmp_path)
+    assert (default.samples, default.denoise) == (fresh.samples, fresh.denoise)
+    with pytest.raises(gb.DatasetUnavailable, match="not registered"):
+        gb.generate(tmp_path, preset="clever567", split="test", n_scenes=1, resolution=32,
+                    samples=None, denoise=None, seed=0)  # fmt: skip
 
 
 def test_contact_sheet_shape(split):
