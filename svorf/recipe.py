@@ -2,10 +2,11 @@
 segmentation metrics over wall-clock time, and the recipe's levers as config fields.
 
 Where it sits: on top of ``svorf.train.train`` (which it calls with ``max_wall_s`` and an
-``eval_fn``). Nothing here imports ``benchmark``: the segmentation metrics are a callable
-(:func:`make_eval_fn`), by default the small ARI of this module; the command line
-(``python -m svorf.recipe train-eval``) plugs in ``benchmark.metrics.segmentation_metrics``
-when it can be imported, lazily, as a tool.
+``eval_fn``). Nothing here imports ``benchmark`` (svorf depends on ``scenefmt`` only):
+the segmentation metrics are a callable (:func:`make_eval_fn`), by default the ARI, FG-ARI
+and NV-ARI of this module (:func:`segmentation_metrics_basic`, equal to
+``benchmark.metrics.segmentation_metrics`` on those keys: tests/test_recipe.py), which
+the command line (``python -m svorf.recipe train-eval``) uses too.
 
 The levers (every one a documented config field that the paper scale leaves off):
 
@@ -462,14 +463,6 @@ def plot_runs(runs: dict[str, str | Path], path: str | Path) -> Path:
     return path
 
 
-def _benchmark_metrics() -> SegMetricsFn | None:
-    try:  # a tool-side convenience; svorf itself never needs benchmark
-        from benchmark.metrics import segmentation_metrics
-    except ImportError:
-        return None
-    return segmentation_metrics
-
-
 _PROG = "python -m svorf.recipe"
 
 
@@ -573,7 +566,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.model_set:
         mcfg = mcfg.replace(**dict(_parse_set(x) for x in a.model_set))
     res = train_eval(a.data, a.test, a.out, a.minutes, mcfg, tcfg,
-                     seg_metrics=_benchmark_metrics(), resume=a.resume,
+                     seg_metrics=None, resume=a.resume,
                      grid_scenes=a.grid_scenes, final_scenes=a.final_scenes,
                      train_scenes=a.train_scenes)  # fmt: skip
     print(json.dumps({"final": res["final"], "grid": res["grid"]}, indent=2))
