@@ -18,6 +18,7 @@ Modules:
 * :mod:`assets_procedural.textures`: ``texture_params``, ``texture_image``,
   ``background_params`` (50 backgrounds over a pool of 50 textures by default).
 * :mod:`assets_procedural.cache`: atomic on-disk cache keyed by (kind, id, version).
+* :mod:`assets_procedural.ids`: ``check_id``, the one validity check of every asset id.
 * :mod:`assets_procedural.distinct`: shape descriptors and ``count_distinct``
   (``python -m assets_procedural.distinct --n 1200``).
 * :mod:`assets_procedural.preview`: contact sheets for eyeballing (matplotlib).

@@ -26,9 +26,9 @@ from pathlib import Path
 
 import trimesh
 
-from assets_procedural.chairs import CHAIR_GENERATOR_VERSION, _check_id, chair_mesh
+from assets_procedural.chairs import CHAIR_GENERATOR_VERSION, chair_mesh
+from assets_procedural.ids import check_id
 from assets_procedural.textures import TEXTURE_GENERATOR_VERSION, texture_image
-from assets_procedural.textures import _check_id as _check_texture_id
 from scenefmt import mkstemp_beside
 
 ENV_VAR = "SVORF_ASSET_CACHE"
@@ -69,7 +69,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 
 def chair_cache_path(asset_id: int, cache_dir: str | os.PathLike | None = None) -> Path:
     """Where chair ``asset_id`` lives in the cache (the file may not exist yet)."""
-    aid = _check_id(asset_id)
+    aid = check_id(asset_id, "asset_id")
     return _resolve(cache_dir) / "chairs" / f"chair_{_safe(CHAIR_GENERATOR_VERSION)}_{aid:06d}.ply"
 
 
@@ -77,7 +77,7 @@ def texture_cache_path(
     texture_id: int, size: int, cache_dir: str | os.PathLike | None = None
 ) -> Path:
     """Where texture ``texture_id`` at ``size`` lives in the cache (may not exist yet)."""
-    tid = _check_texture_id(texture_id, "texture_id")
+    tid = check_id(texture_id, "texture_id")
     name = f"texture_{_safe(TEXTURE_GENERATOR_VERSION)}_{tid:06d}_{int(size)}.png"
     return _resolve(cache_dir) / "textures" / name
 

@@ -41,12 +41,12 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from numbers import Integral
 
 import numpy as np
 import trimesh
 
 from assets_procedural import _geometry as g
+from assets_procedural.ids import check_id
 
 CHAIR_GENERATOR_VERSION = "chairs-1.0.0"
 """Bump whenever the same id would produce different geometry (invalidates caches)."""
@@ -149,14 +149,6 @@ class ChairParams:
         return dataclasses.asdict(self)
 
 
-def _check_id(asset_id: object) -> int:
-    if isinstance(asset_id, bool) or not isinstance(asset_id, Integral):
-        raise TypeError(f"asset_id must be a non-negative int, got {type(asset_id).__name__}")
-    if asset_id < 0:
-        raise ValueError(f"asset_id must be a non-negative int, got {asset_id}")
-    return int(asset_id)
-
-
 def _choice(rng: np.random.Generator, options: tuple, p: list[float]) -> str:
     return options[int(rng.choice(len(options), p=np.asarray(p) / np.sum(p)))]
 
@@ -173,7 +165,7 @@ def chair_params(asset_id: int) -> ChairParams:
     Raises:
         TypeError / ValueError: ``asset_id`` is not a non-negative integer.
     """
-    aid = _check_id(asset_id)
+    aid = check_id(asset_id, "asset_id")
     rng = np.random.default_rng([GENERATOR_SALT, aid])
     u = rng.uniform
 

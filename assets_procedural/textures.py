@@ -29,6 +29,8 @@ from numbers import Integral
 
 import numpy as np
 
+from assets_procedural.ids import check_id
+
 TEXTURE_GENERATOR_VERSION = "textures-1.0.0"
 """Bump whenever the same id would produce different pixels (invalidates caches)."""
 
@@ -72,14 +74,6 @@ class TextureParams:
         }
 
 
-def _check_id(value: object, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, Integral):
-        raise TypeError(f"{name} must be a non-negative int, got {type(value).__name__}")
-    if value < 0:
-        raise ValueError(f"{name} must be a non-negative int, got {value}")
-    return int(value)
-
-
 def _hsv(h: float, s: float, v: float) -> RGB:
     r, g, b = colorsys.hsv_to_rgb(h % 1.0, min(max(s, 0.0), 1.0), min(max(v, 0.0), 1.0))
     return (float(r), float(g), float(b))
@@ -91,7 +85,7 @@ def texture_params(texture_id: int) -> TextureParams:
     Raises:
         TypeError / ValueError: ``texture_id`` is not a non-negative integer.
     """
-    tid = _check_id(texture_id, "texture_id")
+    tid = check_id(texture_id, "texture_id")
     family = FAMILIES[tid % len(FAMILIES)]
     rng = np.random.default_rng([TEXTURE_SALT, tid])
     u = rng.uniform
@@ -453,8 +447,8 @@ def background_params(bg_id: int, n_textures: int = N_TEXTURES_DEFAULT) -> tuple
     Raises:
         ValueError: ``bg_id`` outside ``[0, 4 * n_textures)`` or ``n_textures < 8``.
     """
-    _check_id(bg_id, "bg_id")
-    _check_id(n_textures, "n_textures")
+    check_id(bg_id, "bg_id")
+    check_id(n_textures, "n_textures")
     if n_textures < len(FAMILIES):
         raise ValueError(f"n_textures must be >= {len(FAMILIES)}, got {n_textures}")
     table = _background_table(int(n_textures))

@@ -254,10 +254,10 @@ def _train_ranked(
 
     main = ctx is None or ctx.is_main
     if a.resume:  # a corrupt checkpoint is reported before any data is loaded
-        from svorf.train import CHECKPOINT_NAME, _read_checkpoint
+        from svorf.train import CHECKPOINT_NAME, read_checkpoint
 
         if (Path(a.out) / CHECKPOINT_NAME).exists():
-            _read_checkpoint(Path(a.out) / CHECKPOINT_NAME)
+            read_checkpoint(Path(a.out) / CHECKPOINT_NAME)
     if main:
         ranks = "" if ctx is None else f", {ctx.world_size} ranks ({ctx.backend})"
         print(

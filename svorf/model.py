@@ -47,7 +47,7 @@ from .encoder import ImageEncoder
 from .field import build_fields, positional_encoding
 from .losses import connectivity_loss
 from .render import (
-    _SIGMA_GUARD,
+    SIGMA_GUARD,
     clip_rays_to_box,
     intervals,
     sample_pdf,
@@ -129,7 +129,7 @@ def _log_transmittance(
         t = torch.cat([prior[0], t], dim=-1)
         sigma = torch.cat([prior[1], sigma], dim=-1)
     t_s, order = torch.sort(t.float(), dim=-1, stable=True)
-    tau = sigma.float().gather(-1, order).clamp(0.0, _SIGMA_GUARD) * intervals(t_s, last_delta)
+    tau = sigma.float().gather(-1, order).clamp(0.0, SIGMA_GUARD) * intervals(t_s, last_delta)
     log_t = -torch.cumsum(tau, dim=-1)
     log_t = torch.cat([torch.zeros_like(log_t[..., :1]), log_t[..., :-1]], dim=-1)
     return torch.empty_like(log_t).scatter(-1, order, log_t)[..., -N:]

@@ -15,9 +15,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-# Densities are clamped to this before multiplying by interval lengths (1e10 for the last
-# one), so sigma * delta stays finite in float32 (<= 1e20 << 3.4e38), even for sigma = inf.
-_SIGMA_GUARD = 1e10
+#: Densities are clamped to this before multiplying by interval lengths (1e10 for the last
+#: one), so sigma * delta stays finite in float32 (<= 1e20 << 3.4e38), even for sigma = inf.
+#: Every transmittance computed from densities (here and in ``svorf.model``) uses it.
+SIGMA_GUARD = 1e10
 
 
 def render_weights(sigma: Tensor, delta: Tensor) -> Tensor:
@@ -30,7 +31,7 @@ def render_weights(sigma: Tensor, delta: Tensor) -> Tensor:
         weights [..., N], float32; T_i = exp(-sum_{j<i} sigma_j delta_j) in log space.
     """
     with torch.autocast(device_type=sigma.device.type, enabled=False):
-        sigma = sigma.float().clamp(0.0, _SIGMA_GUARD)
+        sigma = sigma.float().clamp(0.0, SIGMA_GUARD)
         tau = sigma * delta.float().clamp_min(0.0)  # optical thickness per interval
         log_t = -torch.cumsum(tau, dim=-1)
         log_t = torch.cat([torch.zeros_like(log_t[..., :1]), log_t[..., :-1]], dim=-1)

@@ -72,6 +72,7 @@ __all__ = [
     "init_weights_from",
     "load_run",
     "predict_scene",
+    "read_checkpoint",
     "recipe_applies",
     "resolve_device",
     "run_configs",
@@ -413,7 +414,12 @@ def _atomic_torch_save(obj: Any, path: Path) -> None:
         raise
 
 
-def _read_checkpoint(path: Path) -> dict[str, Any]:
+def read_checkpoint(path: Path) -> dict[str, Any]:
+    """The checkpoint dict at ``path`` (``checkpoint.pt`` of a run folder), checked.
+
+    Raises:
+        CheckpointError: missing, unreadable, or not of :data:`CHECKPOINT_FORMAT` (one line).
+    """
     if not path.is_file():
         raise CheckpointError(
             f"{path}: missing - not a training run folder (make one with `svorf train --out DIR`)"
@@ -462,7 +468,7 @@ def load_run(
         CheckpointError: the checkpoint is missing, corrupt or of another format (one line).
     """
     path = Path(run_dir) / CHECKPOINT_NAME
-    ckpt = _read_checkpoint(path)
+    ckpt = read_checkpoint(path)
     try:
         mcfg = ModelConfig.from_dict(ckpt["model_config"])
         tcfg = TrainConfig.from_dict(ckpt["train_config"])
@@ -772,7 +778,7 @@ def train(
     log_path, eval_path = out / "log.jsonl", out / "eval.jsonl"
 
     if resume and ckpt_path.exists():
-        ckpt = _read_checkpoint(ckpt_path)
+        ckpt = read_checkpoint(ckpt_path)
         # Through from_dict: a checkpoint written before a config field existed holds the
         # field's default (the behaviour it was trained with), not a mismatch.
         saved = ModelConfig.from_dict(dict(ckpt["model_config"])).to_dict()
@@ -1034,7 +1040,7 @@ def init_weights_from(model: torch.nn.Module, source: str | os.PathLike) -> dict
         path = path / CHECKPOINT_NAME
     if not path.is_file():
         raise CheckpointError(f"--init-from {source}: no checkpoint at {path}")
-    ckpt = _read_checkpoint(path)
+    ckpt = read_checkpoint(path)
     theirs = ckpt["model"]
     own = model.state_dict()
     take = {k: v for k, v in theirs.items() if k in own and own[k].shape == v.shape}
