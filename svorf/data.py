@@ -1,14 +1,15 @@
-"""Multi-view scene dataset with cached rays, and the training ray sampler.
+"""Multi-view scene dataset with rays computed from its cameras, and the training ray sampler.
 
 Where this sits: ``dataset on disk -> svorf.data -> model``. :class:`MultiViewDataset`
-reads a generated split folder (the :mod:`scenefmt` contract) once into memory,
-optionally resized to the training resolution, and caches one ray per pixel per
-view. :class:`RaySampler` draws the training batches of the paper's setup (one input
-view per scene, ``R`` random rays from the scene's other views), the pixels picked by a
-strategy of :data:`RAY_SAMPLING` (``"uniform"`` = paper; ``"object_heavy"`` = label-free,
-half the rays from pixels far from the image's median colour; ``"error_driven"`` =
-label-free, half the rays from image tiles in proportion to the model's recent error
-there, kept by an :class:`ErrorMap`).
+reads a generated split folder (the :mod:`scenefmt` contract; a plain uORF-layout folder
+through ``svorf.uorf_reader``) once into memory, optionally resized to the training
+resolution, and computes the rays of any pixel from the cameras. :class:`RaySampler`
+draws the training batches of the paper's setup (one input view per scene, ``R`` random
+rays from the scene's other views), the pixels picked by a strategy of
+:data:`RAY_SAMPLING` (``svorf.ray_sampling``: ``"uniform"`` = paper; label-free
+``"object_heavy"``, ``"object_contrast"`` and ``"error_driven"`` with its
+:class:`ErrorMap`). Unreadable folders raise :class:`DatasetError`
+(``svorf.dataset_errors``). The names of those three modules stay importable from here.
 
 Conventions (all tensors are float32 unless said otherwise):
 
@@ -44,39 +45,65 @@ Glossary: B scenes, V views, H x W pixels, R rays per scene, K slots.
 from __future__ import annotations
 
 import hashlib
-import math
 import os
-import re
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from PIL import Image
 from torch import Tensor
 
-from scenefmt import (
-    SplitLayout,
-    read_depth_exr,
-    read_instances,
-    read_json,
-    read_matrix_txt,
-    read_rgb,
-    sentinel_size,
+from scenefmt import SplitLayout, read_depth_exr, read_instances, read_json, read_rgb
+from svorf.dataset_errors import DatasetError, missing_file, read_file
+from svorf.ray_sampling import (
+    CONTRAST_KERNEL,
+    CONTRAST_THRESHOLD,
+    ERROR_DRIVEN_EMA,
+    ERROR_DRIVEN_FRACTION,
+    ERROR_DRIVEN_INIT,
+    ERROR_DRIVEN_TILE,
+    OBJECT_HEAVY_FRACTION,
+    OBJECT_HEAVY_THRESHOLD,
+    RAY_SAMPLING,
+    STATEFUL_RAY_SAMPLING,
+    ErrorMap,
+    RaySamplingFn,
+    contrast_pixels,
+    object_contrast_rays,
+    object_heavy_rays,
+    register_ray_sampling,
+    salient_pixels,
+)
+from svorf.uorf_reader import (
+    UORF_EXCLUDED_SUFFIXES,
+    UORF_FOV_DEG,
+    read_uorf_scene,
+    uorf_view_files,
 )
 
+# With the names re-exported from svorf.ray_sampling, svorf.uorf_reader and
+# svorf.dataset_errors (their old home).
 __all__ = [
+    "CONTRAST_KERNEL",
+    "CONTRAST_THRESHOLD",
+    "ERROR_DRIVEN_EMA",
+    "ERROR_DRIVEN_FRACTION",
+    "ERROR_DRIVEN_INIT",
+    "ERROR_DRIVEN_TILE",
+    "OBJECT_HEAVY_FRACTION",
+    "OBJECT_HEAVY_THRESHOLD",
     "RAY_SAMPLING",
     "STATEFUL_RAY_SAMPLING",
+    "UORF_EXCLUDED_SUFFIXES",
     "UORF_FOV_DEG",
     "DatasetError",
     "ErrorMap",
     "MultiViewDataset",
     "RayBatch",
     "RaySampler",
+    "RaySamplingFn",
     "SceneViews",
     "contrast_pixels",
     "dataset_fingerprint",
@@ -88,37 +115,6 @@ __all__ = [
     "resize_intrinsics",
     "salient_pixels",
 ]
-
-#: Field of view (x, y) in degrees assumed for uORF-layout folders, which store no
-#: intrinsics: uORF's ``models/projection.py`` uses focal lengths of ``350/320 * W`` and
-#: ``350/240 * H`` pixels, i.e. ``2 * atan(0.5 / ratio)``.
-UORF_FOV_DEG = (
-    math.degrees(2.0 * math.atan(0.5 / (350.0 / 320.0))),
-    math.degrees(2.0 * math.atan(0.5 / (350.0 / 240.0))),
-)
-
-#: File-name endings the uORF loader excludes from its view-image glob, plus the
-#: auxiliary images seen in uORF-derived repositories (``_dist``, ``_depth``, ``_seg``).
-UORF_EXCLUDED_SUFFIXES = (
-    "_mask",
-    "_mask_for_moving",
-    "_moved",
-    "_mask_for_bg",
-    "_mask_for_providing_bg",
-    "_changed",
-    "_providing_bg",
-    "_dist",
-    "_depth",
-    "_seg",
-)
-
-# OpenGL camera axes (x right, y up, z backward) -> OpenCV: negate the y and z columns.
-_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-class DatasetError(ValueError):
-    """A split folder that cannot be read; the message is one line naming the fix."""
-
 
 # --------------------------------------------------------------------------- rays
 
@@ -290,9 +286,9 @@ class MultiViewDataset(torch.utils.data.Dataset):
             and the field of view ``uorf_fov_deg``; ``{stem}_RT.txt`` is camera-to-world
             with axes ``uorf_axes``; ``{stem}_depth.npy`` (optional) holds planar z, else
             depth is NaN; instance ids come from ``{stem}_mask.png`` by uORF's
-            second-lowest-grey-level background rule (see :func:`_uorf_ids`), all
-            background when the mask is absent. The folder fingerprint hashes the
-            ``_RT.txt`` files.
+            second-lowest-grey-level background rule (see
+            ``svorf.uorf_reader.uorf_instance_ids``), all background when the mask is
+            absent. The folder fingerprint hashes the ``_RT.txt`` files.
         uorf_fov_deg: field of view (x, y) or one value for both, in degrees, used to
             build ``K`` for uORF-layout folders. Default: uORF's own projection.
         scenes: load only these scene numbers (``sc%04d``; applied before ``max_scenes``),
@@ -385,29 +381,10 @@ class MultiViewDataset(torch.utils.data.Dataset):
             scenes = [x for x in scenes if x in self._only]
         return scenes if max_scenes is None else scenes[:max_scenes]
 
-    def _read(self, reader: Callable, path: Path):
-        """``reader(path)`` with any decoding failure turned into a one-line DatasetError."""
-        try:
-            return reader(path)
-        except FileNotFoundError as e:
-            raise self._missing(path) from e
-        except (OSError, ValueError, SyntaxError) as e:
-            msg = (str(e).strip().splitlines() or [type(e).__name__])[0]
-            raise DatasetError(
-                f"{path}: unreadable ({msg[:120]}); run `generate verify {self.root}` "
-                f"and regenerate the scene"
-            ) from e
-
-    def _missing(self, path: Path) -> DatasetError:
-        return DatasetError(
-            f"{path}: missing - {self.root} is not a complete split folder "
-            f"(run `generate verify {self.root}`)"
-        )
-
     def _load_ours(self, max_scenes: int | None):
         manifest_path = self.root / "manifest.json"
         if not manifest_path.is_file():
-            raise self._missing(manifest_path)
+            raise missing_file(manifest_path, self.root)
         try:
             self.manifest = read_json(manifest_path)
         except (OSError, ValueError) as e:
@@ -426,7 +403,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
             expected = set(range(int(self.manifest["n_scenes"])))
             first = min(expected - set(scenes), default=None)
             if first is not None:
-                raise self._missing(layout.scene_json(first))
+                raise missing_file(layout.scene_json(first), self.root)
         scenes = self._select(scenes, max_scenes)
         rgb, ids, depth, Ks, c2ws = [], [], [], [], []
         for s in scenes:
@@ -437,9 +414,9 @@ class MultiViewDataset(torch.utils.data.Dataset):
             }  # fmt: skip
             for p in layout.scene_files(s):
                 if p not in gt and not p.is_file():
-                    raise self._missing(p)
+                    raise missing_file(p, self.root)
             jpath = layout.scene_json(s)
-            meta = self._read(read_json, jpath)
+            meta = read_file(read_json, jpath, self.root)
             if not isinstance(meta, dict):
                 raise DatasetError(f"{jpath}: not a scene record (a JSON object expected)")
             conv = meta.get("camera_convention", "opencv")
@@ -471,11 +448,11 @@ class MultiViewDataset(torch.utils.data.Dataset):
                         f"{jpath}: view {view} image {vm['image']!r} does not match the "
                         f"layout name {layout.rgb(s, view).name!r}"
                     )
-                img = self._read(read_rgb, layout.rgb(s, view))
+                img = read_file(read_rgb, layout.rgb(s, view), self.root)
                 s_rgb.append(img)
                 if self.truth:
-                    inst = self._read(read_instances, layout.instances(s, view))
-                    dz = self._read(read_depth_exr, layout.depth(s, view))
+                    inst = read_file(read_instances, layout.instances(s, view), self.root)
+                    dz = read_file(read_depth_exr, layout.depth(s, view), self.root)
                     if inst.shape != img.shape[:2] or dz.shape != img.shape[:2]:
                         raise DatasetError(
                             f"{layout.rgb(s, view)}: image {img.shape[:2]}, instances "
@@ -509,62 +486,20 @@ class MultiViewDataset(torch.utils.data.Dataset):
         )
 
     def _load_uorf(self, max_scenes: int | None, fov_deg, axes: str):
-        pngs = sorted(self.root.glob("*.png"))
-        views = [p for p in pngs if not p.stem.endswith(UORF_EXCLUDED_SUFFIXES)]
-        by_scene: dict[int, list[Path]] = {}
-        for p in views:
-            m = re.search(r"sc(\d{4})", p.name)
-            if m:
-                by_scene.setdefault(int(m.group(1)), []).append(p)
-        if not by_scene:
-            raise DatasetError(
-                f"{self.root}: no view images named *sc%04d*.png - not a uORF-layout folder"
-            )
+        by_scene = uorf_view_files(self.root)
         scenes = self._select(sorted(by_scene), max_scenes)
         counts = {len(by_scene[s]) for s in scenes}
         if len(counts) != 1:
             raise DatasetError(f"{self.root}: scenes have different view counts {sorted(counts)}")
-        fx_deg, fy_deg = (fov_deg, fov_deg) if isinstance(fov_deg, (int, float)) else fov_deg
         rgb, ids, depth, Ks, c2ws = [], [], [], [], []
         for s in scenes:
-            files = sorted(by_scene[s])
-            s_rgb = [self._read(read_rgb, p) for p in files]
-            if len({a.shape for a in s_rgb}) != 1:
-                raise DatasetError(f"{self.root}: the views of scene sc{s:04d} differ in size")
-            h, w = s_rgb[0].shape[:2]
-            fx = 0.5 * w / math.tan(math.radians(fx_deg) / 2.0)
-            fy = 0.5 * h / math.tan(math.radians(fy_deg) / 2.0)
-            Kv = np.array([[fx, 0.0, w / 2.0], [0.0, fy, h / 2.0], [0.0, 0.0, 1.0]])
-            s_c2w, s_depth, s_levels = [], [], []
-            for p in files:
-                rt = p.with_name(p.stem + "_RT.txt")
-                if not rt.is_file():
-                    raise DatasetError(f"{rt}: missing - every uORF view image needs its _RT.txt")
-                T = self._read(read_matrix_txt, rt)
-                if T.shape != (4, 4):
-                    raise DatasetError(f"{rt}: expected a 4x4 matrix, got shape {T.shape}")
-                s_c2w.append(T @ _GL_TO_CV if axes == "opengl" else T)
-                if not self.truth:
-                    continue
-                dpath = p.with_name(p.stem + "_depth.npy")
-                if dpath.is_file():  # assumed planar z (what our writer stores there)
-                    dz = self._read(np.load, dpath)
-                    if dz.size != h * w:
-                        raise DatasetError(f"{dpath}: {dz.shape} does not match the {h}x{w} image")
-                    s_depth.append(dz.reshape(h, w).astype(np.float32))
-                else:
-                    s_depth.append(np.full((h, w), np.nan, dtype=np.float32))
-                mpath = p.with_name(p.stem + "_mask.png")
-                if mpath.is_file():
-                    s_levels.append(self._read(_read_grey, mpath))
-                else:
-                    s_levels.append(None)
-            rgb.append(np.stack(s_rgb))
+            sc = read_uorf_scene(self.root, s, by_scene[s], fov_deg, axes, self.truth)
+            rgb.append(sc.rgb)
             if self.truth:
-                ids.append(_uorf_ids(s_levels, h, w))
-                depth.append(np.stack(s_depth))
-            Ks.append(np.stack([Kv] * len(files)))
-            c2ws.append(np.stack(s_c2w))
+                ids.append(sc.ids)
+                depth.append(sc.depth)
+            Ks.append(sc.K)
+            c2ws.append(sc.cam_to_world)
         return self._assemble(scenes, rgb, ids, depth, Ks, c2ws)
 
     @staticmethod
@@ -627,319 +562,6 @@ class MultiViewDataset(torch.utils.data.Dataset):
     def preset(self) -> str | None:
         """The manifest's preset (``None`` for uORF-layout folders)."""
         return self.manifest.get("preset")
-
-
-def _read_grey(path: Path) -> np.ndarray:
-    with Image.open(path) as im:
-        return np.asarray(im.convert("L"))
-
-
-def _uorf_ids(levels: list[np.ndarray | None], h: int, w: int) -> np.ndarray:
-    """Instance ids [V, H, W] from uORF grey masks with the uORF background rule.
-
-    Per view the background is the *second-lowest* grey level (uORF's loader); every
-    other level is an object, with one exception: when the lowest level holds pixel
-    (0, 0) and occupies only pixels of the top-left ``b x b`` block
-    (``b = scenefmt.sentinel_size(h, w)`` of that view's mask) it is our writer's
-    sentinel (``scenefmt.MASK_SENTINEL_LEVEL``, there so that the second-lowest rule
-    holds) and reads as background. That covers the whole block (format >= 1.1) and
-    the single pixel (0, 0) of format 1.0 files. uORF's own loader would see it as a
-    small object. Ids 1..n follow the sorted union of object levels over the scene's
-    views, so one object keeps its id across views (assumes a grey level means the
-    same object in every view of a scene, as in uORF's data). Views without a mask
-    read as all background.
-
-    Args:
-        levels: per view a uint8 [h, w] grey mask (after ``convert('L')``) or None.
-        h, w: the views' image size (each mask is [h, w]).
-    """
-    out = np.zeros((len(levels), h, w), dtype=np.uint8)
-    bgs: list[set[int] | None] = []
-    fg_levels: set[int] = set()
-    for m in levels:
-        if m is None:
-            bgs.append(None)
-            continue
-        uniq = np.unique(m)
-        bg = {int(uniq[1] if len(uniq) > 1 else uniq[0])}
-        corner = int(m[0, 0])
-        if len(uniq) > 1 and corner == int(uniq[0]):
-            b = sentinel_size(*m.shape)
-            low = m == corner
-            if int(low.sum()) == int(low[:b, :b].sum()):
-                bg.add(corner)  # the sentinel block (or format 1.0's pixel (0, 0))
-        bgs.append(bg)
-        fg_levels.update(int(u) for u in uniq if int(u) not in bg)
-    lut = {lv: k + 1 for k, lv in enumerate(sorted(fg_levels))}
-    if len(lut) > 255:
-        raise DatasetError("uORF masks have more than 255 object grey levels")
-    for j, (m, bg) in enumerate(zip(levels, bgs)):
-        if m is None or bg is None:
-            continue
-        table = np.zeros(256, dtype=np.uint8)
-        for lv, k in lut.items():
-            table[lv] = k
-        for lv in bg:
-            table[lv] = 0
-        out[j] = table[m]
-    return out
-
-
-# --------------------------------------------------------------------------- ray sampling
-
-#: A ray-sampling strategy: ``fn(target_rgb, n, generator) -> flat indices``.
-#: ``target_rgb`` is uint8 [Vt, H, W, 3] (the scene's candidate target views); the
-#: result is int64 [n] indices into ``Vt * H * W``. Strategies must draw all their
-#: randomness from ``generator`` (determinism and exact resume).
-RaySamplingFn = Callable[[Tensor, int, torch.Generator], Tensor]
-
-
-def _uniform_rays(target_rgb: Tensor, n: int, generator: torch.Generator) -> Tensor:
-    """The paper's sampling: ``n`` pixels uniformly (with replacement) over all target views."""
-    total = target_rgb.shape[0] * target_rgb.shape[1] * target_rgb.shape[2]
-    return torch.randint(0, total, (n,), generator=generator)
-
-
-#: Defaults of the "object_heavy" strategy (see :func:`object_heavy_rays`).
-OBJECT_HEAVY_FRACTION = 0.5
-OBJECT_HEAVY_THRESHOLD = 0.1
-
-
-def salient_pixels(target_rgb: Tensor, threshold: float = OBJECT_HEAVY_THRESHOLD) -> Tensor:
-    """Label-free "probably object" mask: colour far from the image's median colour.
-
-    Args:
-        target_rgb: uint8 [V, H, W, 3].
-        threshold: in [0, 1] colour units; a pixel is salient when any channel differs
-            from its view's per-channel median by more than this.
-
-    Returns:
-        bool [V, H, W].
-    """
-    x = target_rgb.reshape(target_rgb.shape[0], -1, 3).float()
-    med = x.median(dim=1, keepdim=True).values
-    far = ((x - med).abs() > threshold * 255.0).any(dim=-1)
-    return far.reshape(target_rgb.shape[:3])
-
-
-def object_heavy_rays(
-    target_rgb: Tensor,
-    n: int,
-    generator: torch.Generator,
-    *,
-    fraction: float = OBJECT_HEAVY_FRACTION,
-    threshold: float = OBJECT_HEAVY_THRESHOLD,
-) -> Tensor:
-    """Label-free object-heavy sampling (no ground-truth masks).
-
-    ``round(fraction * n)`` rays come uniformly (with replacement) from the salient
-    pixels of :func:`salient_pixels` over all target views; the rest, or all ``n`` when
-    no pixel is salient, come uniformly from every pixel. On CLEVR-like 64x64 data
-    objects cover ~6% of the pixels but ~77% of the salient ones, so objects get a
-    gradient from the first steps instead of a "mean scene" plateau.
-    """
-    if not 0.0 <= fraction <= 1.0:
-        raise ValueError(f"object_heavy fraction must be in [0, 1], got {fraction}")
-    total = target_rgb.shape[0] * target_rgb.shape[1] * target_rgb.shape[2]
-    cand = salient_pixels(target_rgb, threshold).reshape(-1).nonzero().squeeze(1)
-    n_obj = round(fraction * n) if len(cand) else 0
-    picked = cand[torch.randint(0, max(len(cand), 1), (n_obj,), generator=generator)]
-    rest = torch.randint(0, total, (n - n_obj,), generator=generator)
-    return torch.cat([picked, rest])
-
-
-#: Defaults of the "object_contrast" strategy (see :func:`contrast_pixels`).
-CONTRAST_KERNEL = 5
-CONTRAST_THRESHOLD = 0.05
-
-
-def contrast_pixels(
-    target_rgb: Tensor, kernel: int = CONTRAST_KERNEL, threshold: float = CONTRAST_THRESHOLD
-) -> Tensor:
-    """Label-free "probably object" mask by *local* contrast: colour far from the mean of
-    the ``kernel x kernel`` window around the pixel (edge-replicated borders).
-
-    Unlike :func:`salient_pixels` (distance from the view's median colour) it finds grey
-    objects on a grey floor and ignores smooth floor shading and the dark band behind the
-    floor; a small object is almost all edge, so it is salient as a whole. Measured on 20
-    cpu-scale CLEVR-567 training scenes (64x64, 128 rays per scene, half from salient
-    pixels): 41 of the 128 rays land on objects against 15 with :func:`salient_pixels`.
-
-    Args:
-        target_rgb: uint8 [V, H, W, 3].
-        kernel: odd window side in pixels.
-        threshold: in [0, 1] colour units, on the largest channel difference.
-
-    Returns:
-        bool [V, H, W].
-    """
-    x = target_rgb.permute(0, 3, 1, 2).float() / 255.0
-    r = kernel // 2
-    mean = torch.nn.functional.avg_pool2d(
-        torch.nn.functional.pad(x, (r, r, r, r), mode="replicate"), kernel, 1
-    )
-    return (x - mean).abs().amax(dim=1) > threshold
-
-
-def object_contrast_rays(
-    target_rgb: Tensor,
-    n: int,
-    generator: torch.Generator,
-    *,
-    fraction: float = OBJECT_HEAVY_FRACTION,
-) -> Tensor:
-    """Label-free object-heavy sampling with the local-contrast rule: like
-    :func:`object_heavy_rays` (``round(fraction * n)`` rays uniformly from the salient
-    pixels, the rest uniformly from every pixel), but the salient pixels are those of
-    :func:`contrast_pixels`. Only the image's colours enter: training stays unsupervised.
-    """
-    if not 0.0 <= fraction <= 1.0:
-        raise ValueError(f"object_contrast fraction must be in [0, 1], got {fraction}")
-    total = target_rgb.shape[0] * target_rgb.shape[1] * target_rgb.shape[2]
-    cand = contrast_pixels(target_rgb).reshape(-1).nonzero().squeeze(1)
-    n_obj = round(fraction * n) if len(cand) else 0
-    picked = cand[torch.randint(0, max(len(cand), 1), (n_obj,), generator=generator)]
-    rest = torch.randint(0, total, (n - n_obj,), generator=generator)
-    return torch.cat([picked, rest])
-
-
-#: Defaults of the "error_driven" strategy (see :class:`ErrorMap`).
-ERROR_DRIVEN_FRACTION = 0.5
-ERROR_DRIVEN_TILE = 4
-ERROR_DRIVEN_EMA = 0.5
-ERROR_DRIVEN_INIT = 1.0
-
-
-class ErrorMap:
-    """Label-free error-driven ray sampling: the model's recent error per image tile.
-
-    Every view of every training scene is cut into ``tile x tile`` pixel tiles; each tile
-    holds an error estimate, initially ``init`` (far above any photometric error of
-    colours in [0, 1], so tiles never visited are drawn first: the first sweep covers the
-    images like uniform sampling). After every training step :meth:`update` blends the
-    mean squared colour error of the rays that fell in a tile into it
-    (``e <- (1 - ema) * e + ema * mean``). :meth:`draw` takes ``round(fraction * n)``
-    rays from tiles in proportion to their error (a uniform pixel inside the drawn tile)
-    and the rest uniformly from every pixel, so no pixel's probability drops to 0.
-
-    Only the rendered colours enter (no masks, depth or counts): training stays
-    unsupervised. The state is part of a training checkpoint (:meth:`state_dict`), so a
-    resumed run draws the same rays as an uninterrupted one.
-
-    Args:
-        n_scenes, n_views, image_hw: the dataset's shape.
-        tile: tile side in pixels (tiles at the right/bottom edge may be partial).
-        fraction: share of the rays drawn by error.
-        ema: weight of a step's error in a tile's estimate, in (0, 1].
-        init: initial estimate of every tile.
-    """
-
-    def __init__(
-        self,
-        n_scenes: int,
-        n_views: int,
-        image_hw: tuple[int, int],
-        *,
-        tile: int = ERROR_DRIVEN_TILE,
-        fraction: float = ERROR_DRIVEN_FRACTION,
-        ema: float = ERROR_DRIVEN_EMA,
-        init: float = ERROR_DRIVEN_INIT,
-    ) -> None:
-        if tile < 1:
-            raise ValueError(f"ErrorMap: tile must be >= 1 pixel, got {tile}")
-        if not 0.0 <= fraction <= 1.0:
-            raise ValueError(f"ErrorMap: fraction must be in [0, 1], got {fraction}")
-        if not 0.0 < ema <= 1.0:
-            raise ValueError(f"ErrorMap: ema must be in (0, 1], got {ema}")
-        if not (init > 0 and math.isfinite(init)):
-            raise ValueError(f"ErrorMap: init must be a finite value > 0, got {init}")
-        self.h, self.w = int(image_hw[0]), int(image_hw[1])
-        self.tile, self.fraction, self.ema = int(tile), float(fraction), float(ema)
-        self.th, self.tw = -(-self.h // self.tile), -(-self.w // self.tile)
-        self.err = torch.full((n_scenes, n_views, self.th * self.tw), float(init))
-
-    def _tile_of(self, pixel: Tensor) -> Tensor:
-        """Tile index of flat pixel indices ``y * W + x``."""
-        y, x = pixel // self.w, pixel % self.w
-        return (y // self.tile) * self.tw + x // self.tile
-
-    def draw(self, scene: int, views: Tensor, n: int, generator: torch.Generator) -> Tensor:
-        """``n`` flat indices into ``len(views) * H * W`` (the ray-sampling contract).
-
-        Args:
-            scene: dataset position.
-            views: int64 [Vt] candidate view indices of the scene.
-            n: rays to draw.
-        """
-        hw = self.h * self.w
-        n_err = round(self.fraction * n)
-        weights = self.err[scene, views].reshape(-1).clamp_min(1e-12)  # [Vt * T]
-        picked = torch.multinomial(weights, n_err, replacement=True, generator=generator)
-        vi, t = picked // (self.th * self.tw), picked % (self.th * self.tw)
-        ty, tx = t // self.tw, t % self.tw
-        # a uniform pixel of the tile (partial edge tiles: clamp to the image)
-        dy = torch.randint(0, self.tile, (n_err,), generator=generator)
-        dx = torch.randint(0, self.tile, (n_err,), generator=generator)
-        y = (ty * self.tile + dy).clamp_max(self.h - 1)
-        x = (tx * self.tile + dx).clamp_max(self.w - 1)
-        rest = torch.randint(0, len(views) * hw, (n - n_err,), generator=generator)
-        return torch.cat([vi * hw + y * self.w + x, rest])
-
-    @torch.no_grad()
-    def update(self, scenes: Tensor, views: Tensor, pixels: Tensor, sq_err: Tensor) -> None:
-        """Blend the rays' errors into their tiles.
-
-        Args:
-            scenes: int64 [B] dataset positions of the batch rows.
-            views: int64 [B, R] view of each ray (``RayBatch.target_view``).
-            pixels: int64 [B, R] flat pixel of each ray (``RayBatch.target_pixel``).
-            sq_err: [B, R] squared colour error of each ray (mean over channels).
-        """
-        sq_err = sq_err.detach().float().cpu()
-        if not bool(torch.isfinite(sq_err).all()):
-            return  # a diverging step is reported by the trainer; keep the estimates
-        n_tiles = self.th * self.tw
-        flat = (
-            scenes.cpu().reshape(-1, 1) * self.err.shape[1] + views.cpu()
-        ) * n_tiles + self._tile_of(pixels.cpu())
-        flat = flat.reshape(-1)
-        e = self.err.view(-1)
-        sums = torch.zeros_like(e).index_add_(0, flat, sq_err.reshape(-1))
-        cnt = torch.zeros_like(e).index_add_(0, flat, torch.ones(flat.shape[0]))
-        hit = cnt > 0
-        e[hit] = (1.0 - self.ema) * e[hit] + self.ema * sums[hit] / cnt[hit]
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"err": self.err.clone(), "tile": self.tile}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        err = state["err"]
-        if tuple(err.shape) != tuple(self.err.shape) or int(state["tile"]) != self.tile:
-            raise ValueError(
-                f"ErrorMap: saved map {tuple(err.shape)} (tile {state['tile']}) does not fit "
-                f"this dataset {tuple(self.err.shape)} (tile {self.tile})"
-            )
-        self.err.copy_(err)
-
-
-#: Registry of ray-sampling strategies by name (``TrainConfig.ray_sampling``).
-#: ``"error_driven"`` is stateful: :class:`RaySampler` draws it from its :class:`ErrorMap`
-#: (the trainer feeds the map); called as a plain function it is uniform sampling.
-RAY_SAMPLING: dict[str, RaySamplingFn] = {
-    "uniform": _uniform_rays,
-    "object_heavy": object_heavy_rays,
-    "object_contrast": object_contrast_rays,
-    "error_driven": _uniform_rays,
-}
-#: Strategies that need an :class:`ErrorMap` fed with each step's per-ray errors.
-STATEFUL_RAY_SAMPLING = frozenset({"error_driven"})
-
-
-def register_ray_sampling(name: str, fn: RaySamplingFn) -> None:
-    """Add a strategy to :data:`RAY_SAMPLING` (e.g. object-heavy or error-driven)."""
-    if name in RAY_SAMPLING:
-        raise ValueError(f"ray sampling strategy {name!r} is already registered")
-    RAY_SAMPLING[name] = fn
 
 
 @dataclass(frozen=True)

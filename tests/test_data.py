@@ -15,13 +15,13 @@ from svorf.data import (
     ErrorMap,
     MultiViewDataset,
     RaySampler,
-    _uorf_ids,
     dataset_fingerprint,
     pixel_rays,
     rays_at,
     register_ray_sampling,
 )
 from svorf.synthetic import write_synthetic_split
+from svorf.uorf_reader import uorf_instance_ids
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -285,7 +285,7 @@ def test_uorf_ids_read_sentinel_block_and_old_single_pixel_as_background(res):
     b = sentinel_size(res, res)
     old[:b, :b] = new[b, b]  # background level
     old[0, 0] = MASK_SENTINEL_LEVEL
-    got = _uorf_ids([new, old, None], res, res)
+    got = uorf_instance_ids([new, old, None], res, res)
     assert got.shape == (3, res, res) and got.dtype == np.uint8
     np.testing.assert_array_equal(got[0], ids)
     np.testing.assert_array_equal(got[1], ids)
@@ -293,7 +293,7 @@ def test_uorf_ids_read_sentinel_block_and_old_single_pixel_as_background(res):
     # the lowest level reaching past the block is an object (uORF's rule), not a sentinel
     odd = new.copy()
     odd[:b, : b + 1] = MASK_SENTINEL_LEVEL
-    assert _uorf_ids([odd], res, res)[0][0, b] > 0
+    assert uorf_instance_ids([odd], res, res)[0][0, b] > 0
 
 
 def test_synthetic_split_is_deterministic(tmp_path):
