@@ -71,10 +71,10 @@ def test_checkpoint_report_and_cache_files_get_0644_under_umask_022(umask, tmp_p
     umask(0o022)
     from assets_procedural.cache import atomic_write_bytes as cache_write
     from benchmark.report import write_json
+    from svorf.checkpoint import atomic_torch_save
     from svorf.speedbench import _write_json_atomic
-    from svorf.train import _atomic_torch_save
 
-    _atomic_torch_save({"x": 1}, tmp_path / "checkpoint.pt")
+    atomic_torch_save({"x": 1}, tmp_path / "checkpoint.pt")
     write_json(tmp_path / "report.json", {"ok": True})
     _write_json_atomic(tmp_path / "speed.json", {"ok": True})
     cache_write(tmp_path / "chair.ply", b"ply\n")

@@ -1,0 +1,326 @@
+"""Checkpoint I/O of training runs: the format, writing, checking, restoring and loading.
+
+Where this sits: between ``svorf.train`` (the loop writes a checkpoint every
+``ckpt_every`` steps and restores one on ``resume=True``) and everything that reads a
+run folder (``load_run`` for ``svorf render``, the recipe and the benchmark adapter;
+``init_weights_from`` for ``--init-from``). This module alone knows what a checkpoint
+holds. Every name is re-exported by ``svorf.train``, the old home of these names.
+
+``checkpoint.pt`` (format :data:`CHECKPOINT_FORMAT`) is a ``torch.save`` dict: ``format``,
+``step``, ``model`` and ``optimizer`` state dicts, ``rng`` (global torch, CUDA and the data
+generator's states), ``model_config`` / ``train_config`` as JSON dicts, ``dataset``
+(fingerprint, root, scene count, image size, preset), ``wall_s``, ``loss``,
+``torch_version``, and when used ``error_map`` (the ``"error_driven"`` ray sampling's
+state) and ``init_from``. It is written atomically (temp file + ``os.replace``), so the
+file on disk is always the last good state.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from scenefmt import default_file_mode
+from svorf.config import ModelConfig
+from svorf.model import SVORF
+from svorf.ray_sampling import ErrorMap
+from svorf.train_config import TrainConfig
+
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "CHECKPOINT_NAME",
+    "CheckpointError",
+    "RunInfo",
+    "atomic_torch_save",
+    "check_resumable",
+    "init_weights_from",
+    "load_run",
+    "read_checkpoint",
+    "restore_checkpoint",
+    "rng_state",
+    "set_rng_state",
+    "write_checkpoint",
+]
+
+CHECKPOINT_NAME = "checkpoint.pt"
+CHECKPOINT_FORMAT = "svorf-checkpoint-1"
+
+#: Fields that may differ between a checkpoint and the config that resumes it.
+_RESUMABLE_CHANGES = {"steps", "log_every", "ckpt_every", "eval_every", "eval_scenes", "device"}
+
+
+class CheckpointError(ValueError):
+    """A run folder without a readable checkpoint; the message is one line."""
+
+
+def atomic_torch_save(obj: Any, path: Path) -> None:
+    """``torch.save(obj)`` to ``path`` atomically: a hidden temp file beside it (file mode
+    as ``open()`` gives, not ``mkstemp``'s 0600), fsync, then ``os.replace``."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), default_file_mode())  # as open() gives, not mkstemp's 0600
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _first_line(e: BaseException) -> str:
+    """The informative line of an exception message (torch's load errors are long)."""
+    lines = [re.sub(r"\x1b\[[0-9;]*m", "", x).strip() for x in str(e).splitlines()]
+    lines = [x for x in lines if x]
+    for x in lines:
+        if "error:" in x.lower():
+            return x
+    return lines[0] if lines else type(e).__name__
+
+
+def read_checkpoint(path: Path) -> dict[str, Any]:
+    """The checkpoint dict at ``path`` (``checkpoint.pt`` of a run folder), checked.
+
+    Raises:
+        CheckpointError: missing, unreadable, or not of :data:`CHECKPOINT_FORMAT` (one line).
+    """
+    if not path.is_file():
+        raise CheckpointError(
+            f"{path}: missing - not a training run folder (make one with `svorf train --out DIR`)"
+        )
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        reason = _first_line(e)
+        raise CheckpointError(
+            f"{path}: corrupt or unreadable checkpoint ({reason[:160]}); delete it and "
+            f"retrain or restore a copy"
+        ) from e
+    required = ("format", "step", "model", "optimizer", "rng", "model_config", "train_config")
+    if (
+        not isinstance(ckpt, dict)
+        or ckpt.get("format") != CHECKPOINT_FORMAT
+        or any(k not in ckpt for k in required)
+    ):
+        raise CheckpointError(
+            f"{path}: not an sVORF checkpoint of format {CHECKPOINT_FORMAT!r}; retrain"
+        )
+    return ckpt
+
+
+def rng_state(gen: torch.Generator, device: torch.device | None = None) -> dict[str, Any]:
+    """The random states a checkpoint keeps: global torch, every CUDA device, the data
+    generator ``gen``, and the generator of ``device`` when it is a CUDA device."""
+    state = {
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+        "data": gen.get_state(),
+    }
+    if device is not None and device.type == "cuda":
+        # The generator of the device that trained: under torchrun rank r trains on
+        # cuda:r, and every rank restores this state into its own device on resume.
+        state["cuda_device"] = torch.cuda.get_rng_state(device)
+    return state
+
+
+def set_rng_state(
+    state: dict[str, Any], gen: torch.Generator, device: torch.device | None = None
+) -> None:
+    """Restore the states of :func:`rng_state` (``cuda_device`` into ``device``)."""
+    torch.set_rng_state(state["torch"])
+    if state.get("cuda") and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+    if device is not None and device.type == "cuda" and state.get("cuda_device") is not None:
+        torch.cuda.set_rng_state(state["cuda_device"], device)
+    gen.set_state(state["data"])
+
+
+def write_checkpoint(
+    path: Path,
+    *,
+    step: int,
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    gen: torch.Generator,
+    device: torch.device,
+    model_cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    dataset: dict[str, Any],
+    wall_s: float,
+    loss: float,
+    error_map: ErrorMap | None = None,
+    init_from: dict[str, Any] | None = None,
+) -> None:
+    """Write the run's state after ``step`` optimizer steps to ``path`` (atomically).
+
+    Args:
+        model, optimizer: their state dicts are saved (a DDP-wrapped model as it is).
+        gen: the data generator (its state and the global ones: :func:`rng_state`).
+        dataset: ``fingerprint``, ``root``, ``n_scenes``, ``image_hw``, ``preset``.
+        wall_s: the run's training wall time so far; loss: the last step's loss.
+        error_map: the ``"error_driven"`` ray sampling's state, when used.
+        init_from: what :func:`init_weights_from` loaded at step 0, when used.
+    """
+    atomic_torch_save(
+        {
+            "format": CHECKPOINT_FORMAT,
+            "step": step,
+            "model": model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "rng": rng_state(gen, device),
+            "model_config": model_cfg.to_dict(),
+            "train_config": train_cfg.to_dict(),
+            "dataset": dataset,
+            "wall_s": wall_s,
+            "loss": loss,
+            "torch_version": str(torch.__version__),
+            **({"error_map": error_map.state_dict()} if error_map is not None else {}),
+            **({"init_from": init_from} if init_from else {}),
+        },
+        path,
+    )
+
+
+def check_resumable(
+    ckpt: dict[str, Any],
+    path: Path,
+    model_cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    fingerprint: str,
+    data_dir: str | os.PathLike,
+) -> None:
+    """Refuse to resume the checkpoint ``ckpt`` (read from ``path``) with other configs
+    or other data: the model config must be equal, the train config equal but for the
+    bookkeeping fields (steps, logging, checkpoint and eval cadence, device), and the
+    training data's ``fingerprint`` the checkpoint's.
+
+    Raises:
+        CheckpointError: one line naming the fields that differ, or the data mismatch.
+    """
+    # Through from_dict: a checkpoint written before a config field existed holds the
+    # field's default (the behaviour it was trained with), not a mismatch.
+    saved = ModelConfig.from_dict(dict(ckpt["model_config"])).to_dict()
+    if saved != model_cfg.to_dict():
+        diff = sorted(k for k, v in model_cfg.to_dict().items() if saved.get(k) != v)
+        raise CheckpointError(f"{path}: resume with a different model config (fields {diff})")
+    old = TrainConfig.from_dict(dict(ckpt["train_config"])).to_dict()  # new fields: defaults
+    diff = sorted(
+        k for k, v in train_cfg.to_dict().items() if k not in _RESUMABLE_CHANGES and old.get(k) != v
+    )
+    if diff:
+        raise CheckpointError(f"{path}: resume with a different train config (fields {diff})")
+    fp = ckpt.get("dataset", {}).get("fingerprint")
+    if fp != fingerprint:
+        raise CheckpointError(
+            f"{path}: the data in {data_dir} differs from the run's training data "
+            f"(fingerprint {str(fp)[:12]} vs {fingerprint[:12]})"
+        )
+
+
+def restore_checkpoint(
+    ckpt: dict[str, Any],
+    path: Path,
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    gen: torch.Generator,
+    device: torch.device,
+    error_map: ErrorMap | None = None,
+) -> None:
+    """Load the model, optimizer, random states and error map of ``ckpt`` (read from
+    ``path``) into the objects of a resumed run.
+
+    Raises:
+        CheckpointError: a state does not fit (one line).
+    """
+    try:
+        model.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        set_rng_state(ckpt["rng"], gen, device)
+        if error_map is not None and "error_map" in ckpt:
+            error_map.load_state_dict(ckpt["error_map"])
+    except (RuntimeError, ValueError, KeyError, TypeError) as e:
+        raise CheckpointError(
+            f"{path}: cannot restore the checkpoint ({_first_line(e)[:160]})"
+        ) from e
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """What a checkpoint says about its run (returned by :func:`load_run`)."""
+
+    model: ModelConfig
+    train: TrainConfig
+    step: int
+    dataset: dict[str, Any]
+    """``fingerprint``, ``root``, ``n_scenes``, ``image_hw`` of the training data."""
+    wall_s: float
+
+
+def load_run(
+    run_dir: str | os.PathLike, device: str | torch.device = "cpu"
+) -> tuple[SVORF, RunInfo]:
+    """Load the latest checkpoint of a run folder.
+
+    Returns:
+        ``(model, info)``: the model in eval mode on ``device``, and its configs.
+
+    Raises:
+        CheckpointError: the checkpoint is missing, corrupt or of another format (one line).
+    """
+    path = Path(run_dir) / CHECKPOINT_NAME
+    ckpt = read_checkpoint(path)
+    try:
+        mcfg = ModelConfig.from_dict(ckpt["model_config"])
+        tcfg = TrainConfig.from_dict(ckpt["train_config"])
+        model = SVORF(mcfg)
+        model.load_state_dict(ckpt["model"])
+    except (ValueError, RuntimeError, TypeError) as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path}: checkpoint does not match this code ({msg[:160]})") from e
+    model.to(torch.device(device) if isinstance(device, str) else device).eval()
+    info = RunInfo(
+        mcfg, tcfg, int(ckpt["step"]), dict(ckpt.get("dataset", {})), float(ckpt.get("wall_s", 0.0))
+    )
+    return model, info
+
+
+def init_weights_from(model: torch.nn.Module, source: str | os.PathLike) -> dict[str, Any]:
+    """Copy into ``model`` every tensor of the checkpoint ``source`` (a run folder or a
+    checkpoint file) whose name and shape match; the rest keep their initialisation.
+
+    A model with another slot count (Room-Diverse K=5 from a CLEVR-567 K=8 model) keeps its
+    own slot embeddings; encoder, decoder, hypernetwork and composition carry over.
+
+    Returns:
+        ``{"path", "step", "loaded", "kept", "kept_names"}``: what was copied and what not.
+
+    Raises:
+        CheckpointError: ``source`` holds no readable checkpoint, or no tensor matched.
+    """
+    path = Path(source)
+    if path.is_dir():
+        path = path / CHECKPOINT_NAME
+    if not path.is_file():
+        raise CheckpointError(f"--init-from {source}: no checkpoint at {path}")
+    ckpt = read_checkpoint(path)
+    theirs = ckpt["model"]
+    own = model.state_dict()
+    take = {k: v for k, v in theirs.items() if k in own and own[k].shape == v.shape}
+    if not take:
+        raise CheckpointError(f"--init-from {source}: no tensor matches this model's")
+    model.load_state_dict(take, strict=False)
+    kept = sorted(k for k in own if k not in take)
+    return {
+        "path": str(path.resolve()),
+        "step": int(ckpt.get("step", 0)),
+        "loaded": len(take),
+        "kept": len(kept),
+        "kept_names": kept[:50],
+    }
