@@ -13,8 +13,10 @@ Where it sits: the model the training code (``svorf.train``), the evaluation ada
 One forward pass (paper Fig. 1): E(I) (``encoder``) -> T(Z, E(I)) (``decoder``) -> slots S
 [B, K, D] -> hypernetwork phi_k = H(s_k) (``field``) -> for every sample point: K densities
 and colours, composed with the slot-guided masks m (``compose``) -> volume rendering with
-hierarchical sampling (``render``); the coarse pass uses the same network as the fine pass
-(one set of fields; the paper's parameter count leaves no room for a second hypernetwork).
+hierarchical sampling (``march.RayMarcher`` over the primitives of ``render``, calling back
+:meth:`SVORF._query` with a ``march.QueryContext``); the coarse pass uses the same network
+as the fine pass (one set of fields; the paper's parameter count leaves no room for a
+second hypernetwork).
 
 Per-point cost (the speed knobs of ``ModelConfig``): the slot masks m are computed first (they need only
 gamma(x) and the slots; the composer is folded into per-scene matrices, exactly), then the
@@ -26,8 +28,9 @@ every knob; their tolerances are tested in tests/test_speed_knobs.py.
 
 At evaluation only (no gradient, deterministic samples), ``eval_early_stop`` stops marching
 a ray once its transmittance is below a threshold and ``eval_fine_min_weight`` evaluates fine
-samples only in coarse bins of non-negligible weight (tests/test_eval_knobs.py; their curve on
-trained weights: ``benchmark run tradeoff``). Both off by default: the exact path.
+samples only in coarse bins of non-negligible weight (both in ``svorf.march``;
+tests/test_eval_knobs.py; their curve on trained weights: ``benchmark run tradeoff``). Both
+off by default: the exact path.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -46,14 +50,8 @@ from .decoder import build_slot_module
 from .encoder import ImageEncoder
 from .field import build_fields, positional_encoding
 from .losses import connectivity_loss
-from .render import (
-    SIGMA_GUARD,
-    clip_rays_to_box,
-    intervals,
-    sample_pdf,
-    sample_stratified,
-    volume_render,
-)
+from .march import FieldQuery, QueryContext, RayMarcher
+from .render import clip_rays_to_box
 
 
 @dataclass
@@ -86,53 +84,6 @@ class RenderOutput:
 # (fp32 / bf16): sparse 4-7x faster at 15% kept, 2-3x at 30%, about even at 85%, dense
 # 1.1x faster at 100%.
 _DENSE_ABOVE = 0.85
-# Segments of one pass's samples between two transmittance checks of eval_early_stop: more
-# segments stop closer to the termination point but cost more (smaller) network calls.
-_MARCH_SEGMENTS = 4
-
-
-@dataclass
-class _Query:
-    """Field values at the samples of one pass."""
-
-    sigma: Tensor  # [B, R, N] composed density
-    rgb: Tensor  # [B, R, N, 3] composed colour
-    sigma_k: Tensor  # [B, K, R, N] per-slot densities
-    m: Tensor  # [B, R, N, K] soft slot masks
-
-
-def _merge_queries(a: _Query, b: _Query, order: Tensor) -> _Query:
-    """Concatenate two queries along N and reorder the samples by ``order`` [B, R, N]."""
-    B, R, N = order.shape
-    K = a.m.shape[-1]
-
-    def cat_gather(x: Tensor, y: Tensor, dim: int, idx: Tensor) -> Tensor:
-        return torch.cat([x, y], dim=dim).gather(dim, idx)
-
-    return _Query(
-        cat_gather(a.sigma, b.sigma, 2, order),
-        cat_gather(a.rgb, b.rgb, 2, order[..., None].expand(B, R, N, 3)),
-        cat_gather(a.sigma_k, b.sigma_k, 3, order[:, None].expand(B, K, R, N)),
-        cat_gather(a.m, b.m, 2, order[..., None].expand(B, R, N, K)),
-    )
-
-
-def _log_transmittance(
-    t: Tensor, sigma: Tensor, prior: tuple[Tensor, Tensor] | None, last_delta: float
-) -> Tensor:
-    """log T in front of each sample t [B, R, N] (float32), from the densities sigma
-    [B, R, N] and the samples ``prior`` = (t [B, R, M], sigma [B, R, M]) merged in along
-    the ray, with the intervals of the merged, sorted samples as the volume renderer uses
-    them (a sample's density affects only the samples after it)."""
-    N = t.shape[-1]
-    if prior is not None:
-        t = torch.cat([prior[0], t], dim=-1)
-        sigma = torch.cat([prior[1], sigma], dim=-1)
-    t_s, order = torch.sort(t.float(), dim=-1, stable=True)
-    tau = sigma.float().gather(-1, order).clamp(0.0, SIGMA_GUARD) * intervals(t_s, last_delta)
-    log_t = -torch.cumsum(tau, dim=-1)
-    log_t = torch.cat([torch.zeros_like(log_t[..., :1]), log_t[..., :-1]], dim=-1)
-    return torch.empty_like(log_t).scatter(-1, order, log_t)[..., -N:]
 
 
 def azimuth_frame(cam_to_world: Tensor) -> Tensor:
@@ -412,32 +363,11 @@ class SVORF(nn.Module):
         ctx = self.query_context(
             slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame, centres=centres
         )
-
         # Evaluation-only knobs (ModelConfig.eval_*): deterministic samples, no gradient.
         evaluating = not perturb and not torch.is_grad_enabled()
-        stop = cfg.eval_early_stop if evaluating else None
-        min_w = cfg.eval_fine_min_weight if evaluating else None
-
-        t_c = sample_stratified(near_r, far_r, R, cfg.n_coarse, perturb)
-        if stop is None:
-            q_c = self._query(ctx, t_c)
-        else:
-            q_c = self._coarse_marching(ctx, t_c, stop)
-        rgb_c, depth, w, acc = volume_render(q_c.sigma, q_c.rgb, t_c, last_delta=cfg.last_delta)
-        rgb, t, q = rgb_c, t_c, q_c
-        if cfg.n_fine > 0:
-            mids = 0.5 * (t_c[..., 1:] + t_c[..., :-1])
-            bins = torch.cat([near_r[..., None], mids, far_r[..., None]], dim=-1)
-            t_f = sample_pdf(bins, w, cfg.n_fine, det=not perturb)
-            # The fine pass uses the union of coarse and fine samples (NeRF). The coarse
-            # samples' field values are reused (same network), only t_f is evaluated.
-            if stop is None and min_w is None:
-                q_f = self._query(ctx, t_f)
-            else:
-                t_f, q_f = self._fine_pruned(ctx, bins, w, t_c, q_c, t_f, stop, min_w)
-            t, order = torch.sort(torch.cat([t_c, t_f], dim=-1), dim=-1)
-            q = _merge_queries(q_c, q_f, order)
-            rgb, depth, w, acc = volume_render(q.sigma, q.rgb, t, last_delta=cfg.last_delta)
+        marcher = RayMarcher.from_config(self._query, cfg, evaluating)
+        p = marcher.render(ctx, near_r, far_r, perturb)
+        rgb, depth, w, acc, t, q = p.rgb, p.depth, p.weights, p.acc, p.t, p.q
 
         slot_probs = None
         connectivity = rgb.new_zeros(())
@@ -447,11 +377,15 @@ class SVORF(nn.Module):
             slot_probs = (num + eps * q.m.mean(dim=2)) / (acc[..., None] + eps)
             if cfg.connectivity:
                 connectivity = connectivity_loss(q.sigma_k, t, far_r, cfg.near, cfg.far, slot_mask)
-        return RenderOutput(rgb, depth, acc, slot_probs, connectivity, rgb_c)
+        return RenderOutput(rgb, depth, acc, slot_probs, connectivity, p.coarse_rgb)
 
-    def _query(self, ctx, t: Tensor) -> _Query:
-        """Composed field at samples t [B, R, N] of every ray."""
-        slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame, centres = ctx
+    def _query(self, ctx: QueryContext, t: Tensor) -> FieldQuery:
+        """Composed field at samples t [B, R, N] of every ray of ``ctx`` (the field query
+        the :class:`~svorf.march.RayMarcher` of :meth:`render_rays` calls)."""
+        slots, params, rays_o, rays_d = ctx.slots, ctx.params, ctx.rays_o, ctx.rays_d
+        slot_mask, is_bg, inv, frame, centres = (
+            ctx.slot_mask, ctx.is_bg, ctx.inv, ctx.frame, ctx.centres
+        )  # fmt: skip
         cfg = self.cfg
         B, R, N = t.shape
         K = slots.shape[1]
@@ -524,162 +458,25 @@ class SVORF(nn.Module):
                 if log_g is not None:
                     sigma_k = sigma_k * log_g.exp()
                 sigma, rgb, m = compose_density_weighted(sigma_k, rgb_k, valid)
-        return _Query(
+        return FieldQuery(
             sigma.view(B, R, N),
             rgb.view(B, R, N, 3),
             sigma_k.float().view(B, K, R, N),
             m.float().reshape(B, R, N, K),  # the composer's m is a [B, K, P] transpose
         )
 
-    def _query_subset(self, ctx, t: Tensor, keep: Tensor) -> _Query:
-        """Composed field at the samples t [B, R, N] where keep [B, R, N] is True; elsewhere
-        sigma, rgb, sigma_k and m are 0 (the caller fills what it needs).
-
-        The kept samples of each scene are packed into pseudo-rays of one sample each (their
-        ray's origin and direction), padded to the largest count over the B scenes, so only
-        they (and the padding) reach the networks. Every per-point quantity of
-        :meth:`_query` depends on the point, its ray direction and its scene only, so kept
-        values equal the dense ones up to float summation order.
-        """
-        slots, params, rays_o, rays_d, *rest = ctx
-        B, R, N = t.shape
-        K = slots.shape[1]
-        if bool(keep.all()):
-            return self._query(ctx, t)
-        flat = keep.reshape(B, R * N)
-        counts = flat.sum(dim=1)
-        P = int(counts.max())
-        sigma = t.new_zeros(B, R * N)
-        rgb = t.new_zeros(B, R * N, 3)
-        sigma_k = t.new_zeros(B, K, R * N)
-        m = t.new_zeros(B, R * N, K)
-        if P > 0:
-            idx = torch.argsort((~flat).to(torch.int8), dim=1, stable=True)[:, :P]  # [B, P]
-            ray = (idx // N)[..., None].expand(B, P, 3)
-            sub = (slots, params, rays_o.gather(1, ray), rays_d.gather(1, ray), *rest)
-            qs = self._query(sub, t.reshape(B, R * N).gather(1, idx)[..., None])
-            # Padding entries (scenes with fewer kept samples) add 0 to a kept sample.
-            real = (torch.arange(P, device=t.device)[None] < counts[:, None]).float()
-            sigma = sigma.scatter_add(1, idx, qs.sigma[..., 0] * real)
-            ix3, ixk = idx[..., None].expand(B, P, 3), idx[..., None].expand(B, P, K)
-            rgb = rgb.scatter_add(1, ix3, qs.rgb[:, :, 0] * real[..., None])
-            sigma_k = sigma_k.scatter_add(
-                2, idx[:, None].expand(B, K, P), qs.sigma_k[..., 0] * real[:, None]
-            )
-            m = m.scatter_add(1, ixk, qs.m[:, :, 0] * real[..., None])
-        return _Query(
-            sigma.view(B, R, N), rgb.view(B, R, N, 3), sigma_k.view(B, K, R, N), m.view(B, R, N, K)
-        )
-
-    def _query_marching(
-        self,
-        ctx,
-        t: Tensor,
-        stop: float | None,
-        keep: Tensor | None = None,
-        prior: tuple[Tensor, Tensor] | None = None,
-        sigma_known: Tensor | None = None,
-    ) -> tuple[_Query, Tensor]:
-        """Composed field at samples t [B, R, N] with early ray termination (evaluation).
-
-        The N samples are taken in :data:`_MARCH_SEGMENTS` segments along the ray; before
-        each, the transmittance in front of every sample of the segment is computed from the
-        densities known so far: ``prior`` = (t [B, R, M], sigma [B, R, M]) of samples
-        already evaluated (the coarse pass, for the fine one) merged in, ``sigma_known``
-        [B, R, N] of the samples where ``keep`` is False (not evaluated here), samples not
-        yet evaluated counting as density 0 (an over-estimate of the transmittance: no
-        sample is skipped too early). Samples whose transmittance is below ``stop``, and
-        those where ``keep`` is False, are not evaluated.
-
-        Returns:
-            (query, evaluated [B, R, N] bool). Where not evaluated: sigma = sigma_known (or
-            0), rgb = sigma_k = m = 0 (the caller fills m).
-        """
-        B, R, N = t.shape
-        K = ctx[0].shape[1]
-        todo = torch.ones_like(t, dtype=torch.bool) if keep is None else keep
-        sigma = t.new_zeros(B, R, N) if sigma_known is None else sigma_known.float().clone()
-        rgb = t.new_zeros(B, R, N, 3)
-        sigma_k = t.new_zeros(B, K, R, N)
-        m = t.new_zeros(B, R, N, K)
-        evaluated = torch.zeros_like(todo)
-        log_stop = math.log(stop) if stop is not None else None
-        seg = N if stop is None else max(1, -(-N // _MARCH_SEGMENTS))
-        for a in range(0, N, seg):
-            b = min(N, a + seg)
-            act = todo[..., a:b]
-            if log_stop is not None and (a > 0 or prior is not None):
-                log_t = _log_transmittance(t, sigma, prior, self.cfg.last_delta)[..., a:b]
-                act = act & (log_t >= log_stop)
-            q = self._query_subset(ctx, t[..., a:b], act)
-            sigma[..., a:b] = torch.where(act, q.sigma, sigma[..., a:b])
-            rgb[..., a:b, :] = q.rgb
-            sigma_k[..., a:b] = q.sigma_k
-            m[..., a:b, :] = q.m
-            evaluated[..., a:b] = act
-        return _Query(sigma, rgb, sigma_k, m), evaluated
-
-    def _coarse_marching(self, ctx, t_c: Tensor, stop: float) -> _Query:
-        """The coarse pass with ``eval_early_stop``: :meth:`_query_marching`, and each
-        skipped sample (a suffix of its ray) takes the m of the ray's last evaluated sample,
-        so slot_probs stay a distribution."""
-        q, done = self._query_marching(ctx, t_c, stop)
-        B, R, N = t_c.shape
-        K = q.m.shape[-1]
-        pos = torch.arange(N, device=t_c.device).expand(B, R, N)
-        # The last evaluated index up to each sample (the first sample is always evaluated).
-        src = torch.where(done, pos, 0).cummax(dim=-1).values
-        m = torch.where(done[..., None], q.m, q.m.gather(2, src[..., None].expand(B, R, N, K)))
-        return _Query(q.sigma, q.rgb, q.sigma_k, m)
-
-    def _fine_pruned(
-        self,
-        ctx,
-        bins: Tensor,
-        w: Tensor,
-        t_c: Tensor,
-        q_c: _Query,
-        t_f: Tensor,
-        stop: float | None,
-        min_w: float | None,
-    ) -> tuple[Tensor, _Query]:
-        """The fine pass with ``eval_fine_min_weight`` / ``eval_early_stop`` (evaluation).
-
-        Args:
-            bins: [B, R, Nc+1] coarse bin edges; w: [B, R, Nc] coarse weights; t_c, q_c:
-                the coarse samples and their field; t_f: [B, R, Nf] fine samples.
-        Returns:
-            (t_f, q_f): fine samples dropped for a small bin weight are moved onto their
-            bin's coarse sample and carry its values (a zero-length duplicate: the render is
-            exactly that without them); samples past the termination point have density 0
-            and the m of their bin's coarse sample (so slot_probs stay a distribution).
-        """
-        B, R, Nf = t_f.shape
-        Nc = t_c.shape[-1]
-        K = q_c.m.shape[-1]
-        b_idx = torch.searchsorted(bins.contiguous(), t_f.contiguous(), right=True) - 1
-        b_idx = b_idx.clamp(0, Nc - 1)  # the coarse bin (and sample) each fine sample is in
-        keep = torch.ones_like(t_f, dtype=torch.bool)
-        if min_w is not None:
-            keep = w.gather(-1, b_idx) >= min_w
-            t_f = torch.where(keep, t_f, t_c.gather(-1, b_idx))
-        copy_sigma = q_c.sigma.gather(-1, b_idx)
-        known = torch.where(keep, 0.0, copy_sigma)
-        q, done = self._query_marching(ctx, t_f, stop, keep, (t_c, q_c.sigma), known)
-        drop = ~keep
-        rgb_c = q_c.rgb.gather(2, b_idx[..., None].expand(B, R, Nf, 3))
-        sk_c = q_c.sigma_k.gather(3, b_idx[:, None].expand(B, q_c.sigma_k.shape[1], R, Nf))
-        m_c = q_c.m.gather(2, b_idx[..., None].expand(B, R, Nf, K))
-        return t_f, _Query(
-            q.sigma,  # the dropped samples' copies are in it already (sigma_known)
-            torch.where(drop[..., None], rgb_c, q.rgb),
-            torch.where(drop[:, None], sk_c, q.sigma_k),
-            torch.where(done[..., None], q.m, m_c),
-        )
-
     def query_context(
-        self, slots, params, rays_o, rays_d, slot_mask, is_bg, inv=None, frame=None, centres=None
-    ) -> tuple:
+        self,
+        slots: Tensor,
+        params: Any,
+        rays_o: Tensor,
+        rays_d: Tensor,
+        slot_mask: Tensor | None,
+        is_bg: Tensor,
+        inv: Tensor | None = None,
+        frame: Tensor | None = None,
+        centres: Tensor | None = None,
+    ) -> QueryContext:
         """What :meth:`_query` needs besides the samples (tests and speedbench build it too):
         slots [B, K, D], field params, rays [B, R, 3] (world), slot_mask [B, K] or None,
         is_bg [B, K], inverse object transforms [B, K, 4, 4] or None, frame [B, 3, 3] or
@@ -687,7 +484,7 @@ class SVORF(nn.Module):
         derived here from the slots)."""
         if centres is None:
             centres = self._centres(slots)
-        return (slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame, centres)
+        return QueryContext(slots, params, rays_o, rays_d, slot_mask, is_bg, inv, frame, centres)
 
     def _centres(
         self,

@@ -14,7 +14,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import svorf.model as model_mod
+import svorf.march as march_mod
 from svorf.config import ModelConfig, model_config
 from svorf.model import SVORF
 
@@ -109,13 +109,13 @@ def test_training_path_ignores_the_knobs():
 
 def _count_evaluated(monkeypatch) -> list[float]:
     seen: list[float] = []
-    orig = model_mod.SVORF._query_subset
+    orig = march_mod.RayMarcher.query_subset
 
     def spy(self, ctx, t, keep):
         seen.append(float(keep.float().mean()))
         return orig(self, ctx, t, keep)
 
-    monkeypatch.setattr(model_mod.SVORF, "_query_subset", spy)
+    monkeypatch.setattr(march_mod.RayMarcher, "query_subset", spy)
     return seen
 
 
@@ -191,7 +191,7 @@ def test_opaque_at_the_first_sample_no_nan():
 
 
 def test_packed_query_equals_the_dense_one_at_kept_samples():
-    """_query_subset packs the kept samples of each scene into pseudo-rays: their values
+    """RayMarcher.query_subset packs the kept samples of each scene into pseudo-rays: their values
     equal the dense query's; the others are 0."""
     cfg, model, slots, o, d = _setup(rays=16)
     B, R, N = 2, 16, 6
@@ -204,7 +204,7 @@ def test_packed_query_equals_the_dense_one_at_kept_samples():
         is_bg[:, -1] = True
         ctx = model.query_context(slots, model.fields.params(slots), o, d, None, is_bg)
         dense = model._query(ctx, t)
-        part = model._query_subset(ctx, t, keep)
+        part = march_mod.RayMarcher.from_config(model._query, cfg, True).query_subset(ctx, t, keep)
     for name in ("sigma", "rgb", "m"):
         a, b = getattr(part, name), getattr(dense, name)
         k = keep if name == "sigma" else keep[..., None]
