@@ -12,9 +12,10 @@ This package imports neither torch nor bpy (numpy, scipy, trimesh, pillow only).
 
 Modules:
 
-* :mod:`assets_procedural.chairs`: ``chair_params``, ``build_chair``, ``chair_mesh``
-  (canonical frame: max horizontal extent 1.0, footprint centred on x=y=0, min z 0,
-  front towards -y).
+* :mod:`assets_procedural.chairs`: ``build_chair``, ``chair_mesh`` (canonical frame: max
+  horizontal extent 1.0, footprint centred on x=y=0, min z 0, front towards -y).
+* :mod:`assets_procedural.chair_spec`: ``ChairParams`` and ``chair_params`` (the draws
+  from an id), re-exported by ``chairs``.
 * :mod:`assets_procedural.textures`: ``texture_params``, ``texture_image``,
   ``background_params`` (50 backgrounds over a pool of 50 textures by default).
 * :mod:`assets_procedural.cache`: atomic on-disk cache keyed by (kind, id, version).
