@@ -592,6 +592,7 @@ class RayBatch:
     input_c2w: Tensor
 
     def to(self, device: torch.device | str) -> RayBatch:
+        """The batch with every tensor on ``device``."""
         return RayBatch(**{k: getattr(self, k).to(device) for k in self.__dataclass_fields__})
 
 

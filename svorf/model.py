@@ -48,7 +48,7 @@ from .compose import SlotGuidedComposer, compose, compose_density_weighted
 from .config import ModelConfig, bf16_autocast_on
 from .decoder import build_slot_module
 from .encoder import ImageEncoder
-from .field import build_fields, positional_encoding
+from .field import CondParams, FieldParams, build_fields, positional_encoding
 from .losses import connectivity_loss
 from .march import FieldQuery, QueryContext, RayMarcher
 from .render import clip_rays_to_box
@@ -340,7 +340,7 @@ class SVORF(nn.Module):
             return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
         return contextlib.nullcontext()
 
-    def slot_params(self, slots: Tensor):
+    def slot_params(self, slots: Tensor) -> FieldParams | CondParams:
         """Per-slot field parameters of ``slots`` [B, K, D] (the hypernetwork's output),
         under bf16 autocast where the config asks for it (the hypernetwork's output layer
         then keeps only its float32 weight for backward: see ``field._RecastLinear``)."""
@@ -590,7 +590,7 @@ class SVORF(nn.Module):
         return fields.eval_pairs(params, gx, gd, sel)
 
     # ------------------------------------------------------------------ training API
-    def forward(self, images: Tensor, rays_o: Tensor, rays_d: Tensor, **kw) -> RenderOutput:
+    def forward(self, images: Tensor, rays_o: Tensor, rays_d: Tensor, **kw: Any) -> RenderOutput:
         """encode(images) + render_rays(slots, rays_o, rays_d, **kw).
 
         In training mode with ``cfg.slot_mask_train > 0`` and no ``slot_mask`` given, a
@@ -603,7 +603,11 @@ class SVORF(nn.Module):
         return self.render_rays(slots, rays_o, rays_d, **kw)
 
     def sample_slot_mask(
-        self, batch: int, *, device=None, generator: torch.Generator | None = None
+        self,
+        batch: int,
+        *,
+        device: torch.device | str | None = None,
+        generator: torch.Generator | None = None,
     ) -> Tensor | None:
         """[B, K] bool with ``cfg.slot_mask_train`` random object slots off per scene.
 
@@ -656,7 +660,7 @@ class SVORF(nn.Module):
 
     @torch.no_grad()
     def render_chunked(
-        self, slots: Tensor, rays_o: Tensor, rays_d: Tensor, chunk: int = 4096, **kw
+        self, slots: Tensor, rays_o: Tensor, rays_d: Tensor, chunk: int = 4096, **kw: Any
     ) -> RenderOutput:
         """render_rays over chunks of ``chunk`` rays per scene, without gradients (evaluation).
 
