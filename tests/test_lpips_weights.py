@@ -33,6 +33,7 @@ from benchmark.metrics.lpips_weights import (
     read_sdist_checkpoint,
     reference_distances,
 )
+from scenefmt.io import reset_file_mode_cache
 
 DATA = Path(__file__).parent / "data" / "lpips_reference"
 
@@ -157,12 +158,14 @@ def test_build_from_local_sdist_writes_atomically(tmp_path, monkeypatch) -> None
     out = tmp_path / "cache" / "w.pth"
     lines: list[str] = []
     old = os.umask(0o027)
+    reset_file_mode_cache()  # default_file_mode() caches the umask an earlier test saw
     try:
         path = build_lpips_weights(
             out, sdist=sdist, reference_dir=tmp_path / "none", log=lines.append
         )
     finally:
         os.umask(old)
+        reset_file_mode_cache()
     assert path == out and stat.S_IMODE(out.stat().st_mode) == 0o640
     assert [p.name for p in out.parent.iterdir()] == ["w.pth"]  # no temp file left
     load_lpips_alex(out)  # the documented layout
