@@ -31,6 +31,7 @@ from typing import Any
 
 from benchmark.datasets import DatasetInfo
 from benchmark.generator_bridge import DatasetUnavailable
+from benchmark.log import log
 
 __all__ = ["RayJobError", "cpus_per_task", "run_jobs_on_ray"]
 
@@ -48,12 +49,6 @@ def cpus_per_task(cluster_cpus: int, n_tasks: int) -> int:
     if n_tasks < 1:
         return 1
     return max(1, int(cluster_cpus) // int(n_tasks))
-
-
-def _log(msg: str) -> None:
-    from benchmark.runner import _log as log
-
-    log(msg)
 
 
 def _train_task(threads: int, kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -118,7 +113,7 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
         generators.ray_backend.RayMissingError: ray is not installed.
         RayJobError: a training or evaluation task failed (names the job).
     """
-    from benchmark.runner import _read_eval
+    from benchmark.runner import read_eval
     from generators.ray_backend import import_ray
 
     ray = import_ray()
@@ -157,7 +152,7 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
         t = time.perf_counter()
         if jobs:
             threads = cpus_per_task(cpus, len(jobs))
-            _log(
+            log(
                 f"ray: {len(jobs)} training run(s) on a cluster of {cpus} CPUs, "
                 f"{threads} CPU(s) each"
             )
@@ -191,12 +186,12 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
             rec = ctx.model(spec.job, train=False)
             test = tests[spec.dataset]
             d = ctx.eval_dir(rec, test)
-            if d not in evals and _read_eval(d) is None:
+            if d not in evals and read_eval(d) is None:
                 evals[d] = (rec, test)
         t = time.perf_counter()
         if evals:
             threads = cpus_per_task(cpus, len(evals))
-            _log(f"ray: {len(evals)} evaluation(s), {threads} CPU(s) each")
+            log(f"ray: {len(evals)} evaluation(s), {threads} CPU(s) each")
             task = ray.remote(_eval_task)
             refs = {}
             for d, (rec, test) in evals.items():

@@ -31,7 +31,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -51,6 +50,7 @@ from benchmark.evaluate import (
     evaluate_model,
 )
 from benchmark.generator_bridge import DatasetUnavailable
+from benchmark.log import log
 from benchmark.metrics import lpips_weight_candidates
 from benchmark.orderings import Ordering, check_orderings, orderings_summary
 from benchmark.paper_numbers import PAPER_TABLES, paper_rows
@@ -67,11 +67,13 @@ __all__ = [
     "ModelJob",
     "ModelRecord",
     "evaluate_run",
+    "read_eval",
     "row_id",
     "row_metrics",
     "run_table_protocol",
     "train_run",
     "verdicts_for",
+    "write_eval",
 ]
 
 #: TrainConfig fields that do not change what is learned (left out of the cache key).
@@ -177,10 +179,6 @@ def row_id(table: str, model: str, dataset: str, source: str) -> str:
     return f"{table}|{model}|{dataset}|{source}"
 
 
-def _log(msg: str) -> None:
-    print(f"[benchmark] {msg}", file=sys.stderr, flush=True)
-
-
 class Context:
     """Everything one protocol run shares: folders, scale, device, caches and timers.
 
@@ -282,7 +280,7 @@ class Context:
         if k not in self.datasets:
             t = time.perf_counter()
             where = dataset_dir(self.data, self.settings.name, preset, split)
-            _log(f"dataset {preset}/{split} ({self.scale}, source {self.data_source}): {where}")
+            log(f"dataset {preset}/{split} ({self.scale}, source {self.data_source}): {where}")
             self.datasets[k] = ensure_dataset(
                 self.data,
                 self.settings,
@@ -366,7 +364,7 @@ class Context:
                 done = None
         if done is not None:
             fresh = key in self.trained_elsewhere  # trained by this run on Ray workers
-            _log(
+            log(
                 f"model {job.variant} on {job.train_preset}: "
                 + ("trained on a Ray worker, run " if fresh else "reusing run ")
                 + key
@@ -391,13 +389,13 @@ class Context:
             init = self.init_job(job)
             init_rec = None if init is None else self.model(init)
             if init_rec is not None:
-                _log(f"model {job.variant} on {job.train_preset}: starts from run {init_rec.key}")
+                log(f"model {job.variant} on {job.train_preset}: starts from run {init_rec.key}")
             budget = (
                 ""
                 if self.train_minutes is None
                 else f"{self.train_minutes:g} min of training wall time, up to "
             )
-            _log(
+            log(
                 f"model {job.variant} on {job.train_preset}: training run {key} "
                 f"({budget}{tdict.get('steps')} steps; configs from {source})"
             )
@@ -461,10 +459,10 @@ class Context:
     def evaluation(self, rec: ModelRecord, test: DatasetInfo) -> EvalResult:
         """Score ``rec`` on ``test`` (cached on disk; timed under ``evaluation``)."""
         d = self.eval_dir(rec, test)
-        cached = _read_eval(d)
+        cached = read_eval(d)
         if cached is not None:
             return cached
-        _log(f"evaluating run {rec.key} ({rec.job.variant}) on {test.name}")
+        log(f"evaluating run {rec.key} ({rec.job.variant}) on {test.name}")
         t = time.perf_counter()
         res = evaluate_run(
             rec.run_dir,
@@ -484,7 +482,7 @@ class Context:
         d = self._eval_dir("baselines", test, {"num_slots": num_slots})
         out: dict[str, EvalResult] = {}
         for name in BASELINES:
-            r = _read_eval(d / name)
+            r = read_eval(d / name)
             if r is None:
                 break
             out[name] = r
@@ -502,7 +500,7 @@ class Context:
         )
         self.timers["evaluation"] += time.perf_counter() - t
         for name, r in res.items():
-            _write_eval(d / name, r)
+            write_eval(d / name, r)
         return res
 
     def sample(self, rec: ModelRecord, test: DatasetInfo) -> dict[str, np.ndarray] | None:
@@ -667,18 +665,21 @@ def evaluate_run(
     finally:
         if bar is not None:
             bar.close()
-    _write_eval(Path(out_dir), res)
+    write_eval(Path(out_dir), res)
     return res
 
 
-def _read_eval(d: Path) -> EvalResult | None:
+def read_eval(d: Path) -> EvalResult | None:
+    """The cached evaluation in folder ``d`` (its ``result.json``), None if absent or unreadable."""
     try:
         return EvalResult.from_json(json.loads((d / "result.json").read_text()))
     except (OSError, ValueError, KeyError):
         return None
 
 
-def _write_eval(d: Path, res: EvalResult) -> None:
+def write_eval(d: Path, res: EvalResult) -> None:
+    """Cache ``res`` in folder ``d``: ``sample.npz`` (if any), then ``result.json``, which
+    marks the entry complete (both atomic)."""
     d.mkdir(parents=True, exist_ok=True)
     if res.sample is not None:
         import io
@@ -976,7 +977,7 @@ def run_table_protocol(
             test = ctx.dataset(spec.dataset, "test")
             ctx.dataset(spec.job.train_preset, "train")
         except DatasetUnavailable as err:
-            _log(f"row {spec.table} / {spec.model} / {spec.dataset}: dataset unavailable: {err}")
+            log(f"row {spec.table} / {spec.model} / {spec.dataset}: dataset unavailable: {err}")
             unavailable.append(f"{spec.table} / {spec.model} / {spec.dataset}: {err}")
             rows.append(_unavailable_row(spec, str(err)))
             continue
@@ -988,7 +989,7 @@ def run_table_protocol(
             and stored.get("run_key") == ctx.model_key(spec.job)[0]
             and set(stored.get("metrics", {})) == set(row_metrics(spec))  # same columns
         ):
-            _log(f"row done, skipped: {spec.table} / {spec.model} / {spec.dataset}")
+            log(f"row done, skipped: {spec.table} / {spec.model} / {spec.dataset}")
             skipped += 1
             rows.append(stored)
             # Keep the model in the report if its run is still on disk (never retrain here).
@@ -1010,7 +1011,7 @@ def run_table_protocol(
             res = ctx.evaluation(rec, test)
         except Exception as err:  # noqa: BLE001 - one failing row must not lose the others
             why = f"{type(err).__name__}: {err}".splitlines()[0]
-            _log(f"row {spec.table} / {spec.model} / {spec.dataset}: FAILED: {why}")
+            log(f"row {spec.table} / {spec.model} / {spec.dataset}: FAILED: {why}")
             failed.append(f"{spec.table} / {spec.model} / {spec.dataset}: {why}")
             rows.append(_unavailable_row(spec, why, kind="failed"))
             continue

@@ -341,8 +341,10 @@ _SESSION = None
 _THREADS = 1
 
 
-def _worker_init(threads: int) -> None:
-    """Pool initializer: remember the thread count; die with the parent (Linux)."""
+def init_worker(threads: int) -> None:
+    """Set up this process as a render worker (the pool initializer; a Ray actor calls it
+    too): remember the Cycles thread count of its Blender session, which
+    :func:`render_one` opens on first use, and die with the parent (Linux)."""
     global _THREADS
     _THREADS = threads
     try:  # PR_SET_PDEATHSIG = 1: a killed driver takes its workers with it
@@ -352,6 +354,15 @@ def _worker_init(threads: int) -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)
     except (OSError, AttributeError):  # pragma: no cover - not Linux
         pass
+
+
+def close_worker_session() -> None:
+    """Close this worker's Blender session, if one is open (a retiring Ray actor calls it);
+    the next :func:`render_one` opens a fresh one."""
+    global _SESSION
+    if _SESSION is not None:
+        _SESSION.close()
+        _SESSION = None
 
 
 def render_one(
@@ -486,7 +497,7 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
             with cf.ProcessPoolExecutor(
                 max_workers=workers,
                 mp_context=mp.get_context("spawn"),
-                initializer=_worker_init,
+                initializer=init_worker,
                 initargs=(cfg.n_threads(),),
             ) as pool:
                 futures = [
@@ -536,7 +547,9 @@ __all__ = [
     "BACKENDS",
     "GenerateConfig",
     "GenerateSummary",
+    "close_worker_session",
     "cpu_cores",
     "generate_dataset",
+    "init_worker",
     "render_one",
 ]

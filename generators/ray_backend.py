@@ -99,9 +99,9 @@ def _actor_class(ray: Any) -> Any:
         """One worker process holding one Blender session, reused across scenes."""
 
         def __init__(self, threads: int, out: str) -> None:
-            from generators import pipeline
+            from generators.pipeline import init_worker
 
-            pipeline._worker_init(threads)
+            init_worker(threads)
             # The driver wrote the manifest before starting actors: an actor that cannot
             # see it runs on a node without the shared --out folder.
             if not (Path(out) / "manifest.json").is_file():
@@ -133,11 +133,9 @@ def _actor_class(ray: Any) -> Any:
 
         def retire(self) -> None:
             """Close the Blender session and end the process (worker recycling)."""
-            from generators import pipeline
+            from generators.pipeline import close_worker_session
 
-            if pipeline._SESSION is not None:
-                pipeline._SESSION.close()
-                pipeline._SESSION = None
+            close_worker_session()
             ray.actor.exit_actor()
 
     return ray.remote(max_restarts=2, max_task_retries=2)(BlenderWorker)

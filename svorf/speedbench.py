@@ -202,7 +202,7 @@ def train_step(model: SVORF, batch) -> None:
     loss.backward()
 
 
-class _KeptPairs:
+class KeptPairs:
     """Counts the (point, slot) pairs a model evaluates (wraps ``SVORF._eval_slots``)."""
 
     def __init__(self, model: SVORF) -> None:
@@ -321,7 +321,7 @@ def run(
     common = {k: v for k, v in variants[0].overrides.items() if k not in KNOBS_OFF}
     state = build_model(scale, Variant("init", common), None).state_dict()
     models = [build_model(scale, v, state) for v in variants]
-    counters = [_KeptPairs(m) for m in models]
+    counters = [KeptPairs(m) for m in models]
     batch = make_batch(models[0].cfg, scenes, rays)
     queries = [make_query_step(m, batch) for m in models]
     for _ in range(warmup):

@@ -29,7 +29,14 @@ from torch import Tensor
 from benchmark import adapter
 from benchmark.runner import Context
 
-__all__ = ["CASES", "reference_render", "reference_weights", "run_stability"]
+__all__ = [
+    "CASES",
+    "loguniform",
+    "nonfinite_count",
+    "reference_render",
+    "reference_weights",
+    "run_stability",
+]
 
 TOL_RGB = 1e-4
 TOL_ACC = 1e-4
@@ -81,7 +88,8 @@ def _rays(gen: torch.Generator, n_rays: int, n: int, t_lo: float, t_hi: float) -
     return t.sort(1).values
 
 
-def _loguniform(gen: torch.Generator, shape: tuple[int, ...], lo: float, hi: float) -> Tensor:
+def loguniform(gen: torch.Generator, shape: tuple[int, ...], lo: float, hi: float) -> Tensor:
+    """float64 samples of ``shape``, log-uniform in ``[lo, hi]`` (drawn from ``gen``)."""
     u = torch.rand(*shape, generator=gen, dtype=torch.float64)
     return torch.exp(math.log(lo) + u * (math.log(hi) - math.log(lo)))
 
@@ -92,7 +100,7 @@ Case = Callable[[torch.Generator], tuple[Tensor, Tensor, Tensor, float]]
 def _case_moderate(g):
     t = _rays(g, 256, 64, 6.0, 20.0)
     return (
-        _loguniform(g, t.shape, 1e-3, 1e2),
+        loguniform(g, t.shape, 1e-3, 1e2),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e10,
@@ -115,7 +123,7 @@ def _case_empty(g):
 
 def _case_opaque_first(g):
     t = _rays(g, 64, 64, 6.0, 20.0)
-    sigma = _loguniform(g, t.shape, 1e-2, 1e2)
+    sigma = loguniform(g, t.shape, 1e-2, 1e2)
     sigma[:, 0] = float("inf")
     return sigma, torch.rand(*t.shape, 3, generator=g, dtype=torch.float64), t, 1e10
 
@@ -123,7 +131,7 @@ def _case_opaque_first(g):
 def _case_tiny_distances(g):
     t = _rays(g, 256, 64, 1e-6, 1e-5)
     return (
-        _loguniform(g, t.shape, 1e3, 1e7),
+        loguniform(g, t.shape, 1e3, 1e7),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e-6,
@@ -133,7 +141,7 @@ def _case_tiny_distances(g):
 def _case_huge_distances(g):
     t = _rays(g, 256, 64, 1e4, 1e6)
     return (
-        _loguniform(g, t.shape, 1e-8, 1e-4),
+        loguniform(g, t.shape, 1e-8, 1e-4),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e5,
@@ -144,7 +152,7 @@ def _case_coincident(g):
     t = _rays(g, 128, 32, 6.0, 20.0)
     t = torch.repeat_interleave(t, 2, dim=1)  # every sample twice: delta = 0 intervals
     return (
-        _loguniform(g, t.shape, 1e-2, 1e4),
+        loguniform(g, t.shape, 1e-2, 1e4),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e10,
@@ -154,7 +162,7 @@ def _case_coincident(g):
 def _case_many_samples(g):
     t = _rays(g, 64, 1024, 6.0, 20.0)
     return (
-        _loguniform(g, t.shape, 1e-3, 1e1),
+        loguniform(g, t.shape, 1e-3, 1e1),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e10,
@@ -164,7 +172,7 @@ def _case_many_samples(g):
 def _case_finite_far(g):
     t = _rays(g, 256, 64, 6.0, 20.0)
     return (
-        _loguniform(g, t.shape, 1e-3, 1e1),
+        loguniform(g, t.shape, 1e-3, 1e1),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         0.05,
@@ -176,7 +184,7 @@ def _case_wide(g):
     # to 0 or one ulp: the reference sees the same rounded t); 10% empty samples.
     u = torch.rand(256, 64, generator=g, dtype=torch.float64)
     t = 1.0 + torch.cumsum(torch.exp(math.log(1e-8) + u * (math.log(1e3) - math.log(1e-8))), 1)
-    sigma = _loguniform(g, t.shape, 1e-3, 1e8)
+    sigma = loguniform(g, t.shape, 1e-3, 1e8)
     sigma[torch.rand(t.shape, generator=g) < 0.1] = 0.0
     return sigma, torch.rand(*t.shape, 3, generator=g, dtype=torch.float64), t, 1e3
 
@@ -204,7 +212,8 @@ CASES: list[tuple[str, Case, torch.dtype, bool | torch.dtype]] = [
 ]
 
 
-def _nonfinite(x: Tensor | None) -> int:
+def nonfinite_count(x: Tensor | None) -> int:
+    """Number of NaN / Inf entries of ``x`` (0 for None, e.g. a missing gradient)."""
     return 0 if x is None else int((~torch.isfinite(x.float())).sum())
 
 
@@ -240,11 +249,11 @@ def run_case(
         (depth.detach().cpu().double() - ref["depth"]).abs().nan_to_num(float("inf")).max()
     )
     nonfinite = (
-        _nonfinite(out_rgb)
-        + _nonfinite(depth)
-        + _nonfinite(acc)
-        + _nonfinite(sigma.grad)
-        + _nonfinite(rgb.grad)
+        nonfinite_count(out_rgb)
+        + nonfinite_count(depth)
+        + nonfinite_count(acc)
+        + nonfinite_count(sigma.grad)
+        + nonfinite_count(rgb.grad)
     )
     rel = err_depth / t_scale if t_scale > 0 else err_depth
     passed = nonfinite == 0 and err_rgb <= TOL_RGB and err_acc <= TOL_ACC and rel <= TOL_DEPTH_REL

@@ -70,6 +70,7 @@ from typing import Any
 import torch
 
 from benchmark import adapter
+from benchmark.log import log
 from benchmark.runner import Context, row_id
 
 __all__ = [
@@ -422,7 +423,7 @@ def measure(
         m = speedbench.build_model(ctx.scale, v, p.weights.state, ctx.seeds["train"])
         assert m.cfg == cfg, (m.cfg, cfg)  # build_model reproduced the requested config
         models.append(m.to(dev))
-        counters.append(speedbench._KeptPairs(m))
+        counters.append(speedbench.KeptPairs(m))
     scenes, rays = batch_shape
     batch = tuple(
         x.to(dev) for x in speedbench.make_batch(models[0].cfg, scenes, rays, ctx.seeds["eval"])
@@ -464,7 +465,7 @@ def measure(
 
 
 def _log(msg: str) -> None:
-    print(f"[benchmark] tradeoff: {msg}", file=sys.stderr, flush=True)
+    log(f"tradeoff: {msg}")
 
 
 def _row(p: Point, m: dict[str, Any], settings: TradeoffSettings, batch: tuple[int, int]):
@@ -760,7 +761,7 @@ def _render_scenes(
     """The clevr567 test split at this scale when ``ws`` is trained on clevr567 and the split
     is complete on disk (scored against its ground truth); otherwise a small analytic
     sphere split written to ``tmp`` (scored against the default render only)."""
-    from benchmark.datasets import dataset_dir, ensure_dataset
+    from benchmark.datasets import dataset_dir, ensure_dataset, source_of
 
     n = settings.render_scenes
     root = dataset_dir(ctx.data, ctx.scale, "clevr567", "test")
@@ -772,12 +773,7 @@ def _render_scenes(
         except ValueError as err:  # another resolution
             complete, why = False, str(err)
         if complete:
-            manifest = json.loads((root / "manifest.json").read_text())
-            source = (
-                "synthetic"
-                if str(manifest.get("generator", "")).startswith("svorf.synthetic")
-                else "generator"
-            )
+            source = source_of(json.loads((root / "manifest.json").read_text()))
             info = ensure_dataset(
                 ctx.data,
                 ctx.settings,
@@ -811,28 +807,17 @@ def _render_scenes(
 
 def _usable_as_found(root: Path, ctx: Context) -> bool:
     """Whether :func:`benchmark.datasets.ensure_dataset` would use the split at ``root``
-    without generating anything: complete at this scale, or a generator split with other
-    render settings whose own scenes are complete (its "complete as found" rule)."""
-    from benchmark.datasets import (
-        _complete,
-        _deviations,
-        _nominal,
-        _own_scenes_complete,
-        _render_of,
-    )
+    without generating anything (:func:`benchmark.datasets.split_state` for the source
+    that made it)."""
+    from benchmark.datasets import source_of, split_state
 
     if not (root / "manifest.json").is_file():
         return False
-    n = ctx.settings.n_scenes("clevr567", "test")
-    if _complete(root, n, ctx.settings.resolution)[0]:
-        return True
-    manifest = json.loads((root / "manifest.json").read_text())
-    if str(manifest.get("generator", "")).startswith("svorf.synthetic"):
-        return False
-    samples, denoise, seed = _render_of(manifest)
-    nominal = _nominal(ctx.settings, n, ctx.seeds["data"], "generator")
-    same = {"render_samples": samples, "denoise": denoise, "seed": seed}
-    return bool(_deviations(nominal, same)) and _own_scenes_complete(root, manifest)
+    source = source_of(json.loads((root / "manifest.json").read_text()))
+    state = split_state(
+        ctx.data, ctx.settings, "clevr567", "test", source=source, seed=ctx.seeds["data"]
+    )
+    return state.usable
 
 
 def _build(ws: WeightSet, cfg: Any) -> Any:
@@ -851,7 +836,7 @@ def measure_render(
     Returns:
         (rows, scenes, shipped config): one report row per point, the default first.
     """
-    from benchmark.evaluate import _score_scene, aggregate
+    from benchmark.evaluate import aggregate, score_scene
 
     shipped = ws.shipped if ws.shipped is not None else _shipped(ctx)
     points = render_points(shipped)
@@ -897,9 +882,15 @@ def measure_render(
             reasons["depth_mean_err"] = "no_finite_value (no finite depth in either render)"
         if scenes.ground_truth:
             acc: dict[str, list[float]] = {}
-            skip = {"lpips": "not computed by tradeoff"}
             for pred, truth in zip(pr, truths, strict=True):
-                _score_scene(pred.rgb, None, pred.labels, truth, 0, None, acc, skip, {})
+                score_scene(
+                    pred_rgb=pred.rgb,
+                    pred_depth=None,
+                    pred_labels=pred.labels,
+                    truth=truth,
+                    input_view=0,
+                    with_lpips=False,  # not computed by tradeoff
+                ).append_to(acc)
             agg, nulls, _, _ = aggregate({k: acc[k] for k in _RENDER_QUALITY if k in acc})
             for k in _RENDER_QUALITY:
                 metrics[k] = agg.get(k)
