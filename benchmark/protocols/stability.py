@@ -9,6 +9,8 @@ coincident samples), many samples, and inputs in float16 / bfloat16 / float32 /
 float64 and under bf16 autocast; compares colour, opacity and depth with
 :func:`reference_render` (float64, the closed-form quadrature, no clamping), and
 counts NaN/Inf in the outputs and in the gradients. No dataset or model needed.
+The float64 oracles live in :mod:`.stability_reference` (re-exported here); the cases
+beyond the renderer in :mod:`.stability_cases`.
 
 Each case is a row of table ``stability`` with ``max_abs_err_rgb``,
 ``max_abs_err_acc``, ``max_abs_err_depth``, ``max_rel_err_depth`` and
@@ -27,6 +29,13 @@ import torch
 from torch import Tensor
 
 from benchmark import adapter
+from benchmark.protocols import stability_cases as sc
+from benchmark.protocols.stability_reference import (
+    loguniform,
+    nonfinite_count,
+    reference_render,
+    reference_weights,
+)
 from benchmark.runner import Context
 
 __all__ = [
@@ -43,55 +52,9 @@ TOL_ACC = 1e-4
 TOL_DEPTH_REL = 1e-4  # relative to the largest sample distance of the ray batch
 
 
-def reference_weights(sigma: Tensor, delta: Tensor) -> Tensor:
-    """Quadrature weights ``T_i (1 - exp(-sigma_i delta_i))`` in float64 along the last axis,
-    without clamping; an interval of length 0 contributes nothing whatever its density
-    (``0 * inf`` is taken as 0)."""
-    s = sigma.double().clamp_min(0.0)
-    delta = delta.double()
-    tau = torch.where(delta > 0, s * delta, torch.zeros_like(s))
-    excl = torch.cat([torch.zeros_like(tau[..., :1]), torch.cumsum(tau, -1)[..., :-1]], -1)
-    return torch.exp(-excl) * -torch.expm1(-tau)  # exp(-inf) = 0; tau = inf -> alpha 1
-
-
-def reference_render(sigma: Tensor, rgb: Tensor, t: Tensor, last_delta: float) -> dict[str, Tensor]:
-    """Exact NeRF quadrature in float64 (the oracle).
-
-    ``w_i = T_i (1 - exp(-sigma_i delta_i))``, ``T_i = exp(-sum_{j<i} sigma_j delta_j)``,
-    ``delta_i = t_{i+1} - t_i`` and ``delta_N = last_delta``; an interval of length 0
-    contributes nothing whatever its density (``0 * inf`` is taken as 0).
-
-    Args:
-        sigma: [R, N] densities (may hold inf).
-        rgb: [R, N, 3].
-        t: [R, N] sorted distances.
-        last_delta: length of the last interval.
-
-    Returns:
-        ``{"rgb" [R, 3], "depth" [R], "acc" [R], "weights" [R, N]}``, float64.
-    """
-    t64 = t.double()
-    delta = torch.cat(
-        [t64[:, 1:] - t64[:, :-1], torch.full_like(t64[:, :1], float(last_delta))], 1
-    ).clamp_min(0)
-    w = reference_weights(sigma, delta)
-    return {
-        "rgb": (w[..., None] * rgb.double()).sum(1),
-        "depth": (w * t64).sum(1),
-        "acc": w.sum(1),
-        "weights": w,
-    }
-
-
 def _rays(gen: torch.Generator, n_rays: int, n: int, t_lo: float, t_hi: float) -> Tensor:
     t = t_lo + (t_hi - t_lo) * torch.rand(n_rays, n, generator=gen, dtype=torch.float64)
     return t.sort(1).values
-
-
-def loguniform(gen: torch.Generator, shape: tuple[int, ...], lo: float, hi: float) -> Tensor:
-    """float64 samples of ``shape``, log-uniform in ``[lo, hi]`` (drawn from ``gen``)."""
-    u = torch.rand(*shape, generator=gen, dtype=torch.float64)
-    return torch.exp(math.log(lo) + u * (math.log(hi) - math.log(lo)))
 
 
 Case = Callable[[torch.Generator], tuple[Tensor, Tensor, Tensor, float]]
@@ -212,11 +175,6 @@ CASES: list[tuple[str, Case, torch.dtype, bool | torch.dtype]] = [
 ]
 
 
-def nonfinite_count(x: Tensor | None) -> int:
-    """Number of NaN / Inf entries of ``x`` (0 for None, e.g. a missing gradient)."""
-    return 0 if x is None else int((~torch.isfinite(x.float())).sum())
-
-
 def run_case(
     name: str, build: Case, dtype: torch.dtype, autocast: bool | torch.dtype, seed: int, device: str
 ) -> dict[str, Any]:
@@ -296,7 +254,6 @@ def run_stability(ctx: Context) -> Path:
     import time
 
     from benchmark.figures import stability_chart
-    from benchmark.protocols import stability_cases as sc
 
     report = ctx.base_report()
     rows = []
