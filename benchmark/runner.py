@@ -47,16 +47,15 @@ from benchmark.evaluate import (
     EVAL_VERSION,
     EvalResult,
     evaluate_baselines,
-    evaluate_model,
 )
 from benchmark.generator_bridge import DatasetUnavailable
+from benchmark.jobs import ModelJob, evaluate_run, read_eval, train_run, write_eval
 from benchmark.log import log
 from benchmark.metrics import lpips_weight_candidates
 from benchmark.orderings import Ordering, check_orderings, orderings_summary
 from benchmark.paper_numbers import PAPER_TABLES, paper_rows
-from benchmark.report import RowStore, new_report, stable_hash, write_json, write_report
+from benchmark.report import RowStore, new_report, stable_hash, write_report
 from benchmark.scales import ScaleSettings, get_scale
-from scenefmt import atomic_write_bytes
 from scenefmt.cli_util import did_you_mean
 
 __all__ = [
@@ -85,14 +84,6 @@ BUDGET_STEP_CAP = 1_000_000
 
 #: Where a table protocol's jobs run (``--backend``).
 BACKENDS = ("local", "ray")
-
-
-@dataclass(frozen=True)
-class ModelJob:
-    """One model to train: a config variant on a training preset."""
-
-    variant: str
-    train_preset: str
 
 
 @dataclass(frozen=True)
@@ -586,108 +577,6 @@ class Context:
         write_report(path, report)
         write_index(self.report_dir, report)
         return path  # `benchmark run` prints it (and index.html) once, at the end
-
-
-def train_run(
-    ds_path: Path,
-    run_dir: Path,
-    mcfg: Any,
-    tcfg: Any,
-    *,
-    key: str,
-    key_src: dict[str, Any],
-    job: ModelJob,
-    progress: bool,
-    max_wall_s: float | None,
-    init_from: Path | None = None,
-) -> tuple[dict[str, Any], float]:
-    """Train one cached model run and mark it finished (``benchmark_run.json``).
-
-    The unit of work of :meth:`Context.model` and of a Ray training task
-    (:mod:`benchmark.ray_jobs`); svorf resumes an interrupted run from ``run_dir``.
-
-    Returns:
-        ``(marker payload, wall seconds of this call)``.
-    """
-    t = time.perf_counter()
-    summary = adapter.train(
-        ds_path, run_dir, mcfg, tcfg, progress=progress, max_wall_s=max_wall_s, init_from=init_from
-    )
-    wall = time.perf_counter() - t
-    train_wall = summary.get("train_wall_s")
-    train_wall = float(train_wall) if isinstance(train_wall, (int, float)) else wall
-    payload = {
-        "key": key,
-        "key_source": key_src,
-        "summary": summary,
-        "train_wall_s": train_wall,
-        "job": vars(job),
-    }
-    write_json(Path(run_dir) / "benchmark_run.json", payload)
-    return payload, wall
-
-
-def evaluate_run(
-    run_dir: Path,
-    test: DatasetInfo,
-    out_dir: Path,
-    *,
-    image_size: Any,
-    device: str,
-    max_scenes: int | None,
-    lpips_weights: str | None,
-    progress: bool,
-) -> EvalResult:
-    """Score the model in ``run_dir`` on ``test`` and write the result to ``out_dir``.
-
-    The unit of work of :meth:`Context.evaluation` and of a Ray evaluation task.
-    """
-    ds = adapter.open_dataset(test.path, image_size=image_size)
-    model = adapter.load_model(run_dir, device=device)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(
-            total=len(ds) if max_scenes is None else min(len(ds), max_scenes),
-            desc=f"eval {test.preset}",
-            dynamic_ncols=True,
-        )
-    try:
-        res = evaluate_model(
-            model,
-            ds,
-            input_view=0,
-            max_scenes=max_scenes,
-            lpips_weights=lpips_weights,
-            progress=(lambda i, n: bar.update(1)) if bar is not None else None,
-        )
-    finally:
-        if bar is not None:
-            bar.close()
-    write_eval(Path(out_dir), res)
-    return res
-
-
-def read_eval(d: Path) -> EvalResult | None:
-    """The cached evaluation in folder ``d`` (its ``result.json``), None if absent or unreadable."""
-    try:
-        return EvalResult.from_json(json.loads((d / "result.json").read_text()))
-    except (OSError, ValueError, KeyError):
-        return None
-
-
-def write_eval(d: Path, res: EvalResult) -> None:
-    """Cache ``res`` in folder ``d``: ``sample.npz`` (if any), then ``result.json``, which
-    marks the entry complete (both atomic)."""
-    d.mkdir(parents=True, exist_ok=True)
-    if res.sample is not None:
-        import io
-
-        buf = io.BytesIO()
-        np.savez_compressed(buf, **res.sample)
-        atomic_write_bytes(d / "sample.npz", buf.getvalue())
-    write_json(d / "result.json", res.to_json())  # written last: marks the entry complete
 
 
 # ---------------------------------------------------------------------- table protocols
