@@ -104,7 +104,7 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
     """Generate, train and evaluate everything ``measured`` needs as Ray tasks.
 
     Args:
-        ctx: the protocol's :class:`benchmark.runner.Context` (``backend == "ray"``).
+        ctx: the protocol's :class:`benchmark.context.Context` (``backend == "ray"``).
         measured: the protocol's measured rows (after ``--datasets``).
 
     Returns:

@@ -63,9 +63,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from benchmark.context import Context
+from benchmark.jobs import ModelJob
 from benchmark.paper_numbers import paper_rows
 from benchmark.report import RowStore, stable_hash
-from benchmark.runner import Context, ModelJob, row_id
+from benchmark.rows import row_id
 
 __all__ = [
     "GENERATOR_BASELINE_TARGET",

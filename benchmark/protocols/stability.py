@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from benchmark import adapter
+from benchmark.context import Context
 from benchmark.protocols import stability_cases as sc
 from benchmark.protocols.stability_reference import (
     loguniform,
@@ -36,7 +37,6 @@ from benchmark.protocols.stability_reference import (
     reference_render,
     reference_weights,
 )
-from benchmark.runner import Context
 
 __all__ = [
     "CASES",
