@@ -1,7 +1,7 @@
 """The units of work of a table protocol: train one model run, evaluate one model on one
 test split, and read / write the evaluation cache.
 
-Where this sits: :class:`benchmark.runner.Context` calls :func:`train_run` and
+Where this sits: :class:`benchmark.context.Context` calls :func:`train_run` and
 :func:`evaluate_run` in its own process (``--backend local``); :mod:`benchmark.ray_jobs`
 calls the same functions as Ray tasks (``--backend ray``), so a model run or an evaluation
 is the same bytes on disk whichever backend made it. Nothing here knows about protocols,
