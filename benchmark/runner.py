@@ -206,7 +206,9 @@ def run_table_protocol(
         metrics = tuple(
             dict.fromkeys(m for s in measured if (s.table, s.dataset) == k for m in s.metrics)
         )
-        rows.extend(chance_baseline_rows(spec.table, spec.dataset, metrics, ctx.baselines(test, k_slots)))
+        rows.extend(
+            chance_baseline_rows(spec.table, spec.dataset, metrics, ctx.baselines(test, k_slots))
+        )
     if failed:
         report["status"] = "partial"
         ctx.notes.insert(
