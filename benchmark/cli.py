@@ -156,8 +156,8 @@ def _device(name: str) -> str:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from benchmark.context import Context
     from benchmark.protocols import TABLE_PROTOCOLS, get_protocol
-    from benchmark.runner import Context
 
     fn = get_protocol(args.name)
     only = None

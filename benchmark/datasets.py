@@ -42,7 +42,15 @@ from benchmark import adapter
 from benchmark.scales import ScaleSettings
 from scenefmt import SplitLayout, is_scene_complete, read_json, read_rgb, write_rgb
 
-__all__ = ["DATA_SOURCES", "DatasetInfo", "dataset_dir", "ensure_dataset"]
+__all__ = [
+    "DATA_SOURCES",
+    "DatasetInfo",
+    "SplitState",
+    "dataset_dir",
+    "ensure_dataset",
+    "source_of",
+    "split_state",
+]
 
 DATA_SOURCES = ("generator", "synthetic")
 
@@ -171,6 +179,72 @@ def _own_scenes_complete(root: Path, manifest: dict[str, Any]) -> bool:
     return n_own > 0 and all(is_scene_complete(layout, s) for s in range(n_own))
 
 
+def source_of(manifest: dict[str, Any]) -> str:
+    """The data source (:data:`DATA_SOURCES`) that made a split, from its manifest's
+    ``generator`` field."""
+    made_by = str(manifest.get("generator", ""))
+    return "synthetic" if made_by.startswith("svorf.synthetic") else "generator"
+
+
+@dataclass(frozen=True)
+class SplitState:
+    """Whether a split folder can be used as it is on disk (:func:`split_state`).
+
+    Attributes:
+        usable: :func:`ensure_dataset` uses the folder without generating anything.
+        why: ``"complete"``, ``"complete as found"``, or why not (``"no manifest.json"``,
+            ``"3/5 scenes complete"``, ...).
+        nominal: what the scale asks of the split: scene count and resolution, plus
+            render samples, denoising and data seed for the generator.
+    """
+
+    usable: bool
+    why: str
+    nominal: dict[str, Any]
+
+
+def split_state(
+    data_root: str | os.PathLike,
+    settings: ScaleSettings,
+    preset: str,
+    split: str,
+    *,
+    source: str,
+    seed: int,
+) -> SplitState:
+    """Whether ``<data>/<scale>/<preset>/<split>`` is usable as found, as :func:`ensure_dataset`
+    decides it before generating anything.
+
+    Usable: the split holds the scale's scene count, every scene complete; or, for the
+    ``generator`` source, it was made with other render settings or another seed (which
+    the generator refuses to extend) and every scene its own manifest announces is
+    complete (``"complete as found"``).
+
+    Args:
+        data_root: the ``--data`` folder.
+        settings: the scale (scene count, resolution, render settings).
+        preset, split: the split.
+        source: the data source asking (``generator`` or ``synthetic``).
+        seed: the generator's base seed.
+
+    Raises:
+        ValueError: the split holds another resolution than the scale's.
+    """
+    root = dataset_dir(data_root, settings.name, preset, split)
+    n = settings.n_scenes(preset, split)
+    ok, why = _complete(root, n, settings.resolution)
+    nominal = _nominal(settings, n, seed, source)
+    if not ok and source == "generator" and (root / "manifest.json").is_file():
+        # An existing split the generator cannot extend (other render settings or seed:
+        # it refuses to mix them) is used as found when its own scenes are complete.
+        old = read_json(root / "manifest.json")
+        samples, denoise, old_seed = _render_of(old)
+        same = {"render_samples": samples, "denoise": denoise, "seed": old_seed}
+        if _deviations(nominal, same) and _own_scenes_complete(root, old):
+            ok, why = True, "complete as found"
+    return SplitState(ok, why, nominal)
+
+
 def _verify(root: Path) -> None:
     """``generators.verify.verify_split``; ValueError naming the first problems."""
     from generators.verify import verify_split
@@ -277,21 +351,13 @@ def ensure_dataset(
     root = dataset_dir(data_root, settings.name, preset, split)
     n = settings.n_scenes(preset, split)
     t0 = time.perf_counter()
-    ok, why = _complete(root, n, settings.resolution)
-    nominal = _nominal(settings, n, seed, source)
+    state = split_state(data_root, settings, preset, split, source=source, seed=seed)
+    ok, nominal = state.usable, state.nominal
     generated = False
-    if not ok and source == "generator" and (root / "manifest.json").is_file():
-        # An existing split the generator cannot extend (other render settings or seed:
-        # it refuses to mix them) is used as found when its own scenes are complete.
-        old = read_json(root / "manifest.json")
-        samples, denoise, old_seed = _render_of(old)
-        same = {"render_samples": samples, "denoise": denoise, "seed": old_seed}
-        if _deviations(nominal, same) and _own_scenes_complete(root, old):
-            ok, why = True, "complete as found"
     if ok:
         manifest = read_json(root / "manifest.json")
         found = str(manifest.get("generator", ""))
-        actual = "synthetic" if found.startswith("svorf.synthetic") else "generator"
+        actual = source_of(manifest)
         if actual != source:
             raise ValueError(
                 f"{root} was made by {found!r} ({actual}) but --data-source is {source!r}; "

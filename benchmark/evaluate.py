@@ -47,9 +47,11 @@ __all__ = [
     "EVAL_VERSION",
     "LPIPS_REASON",
     "EvalResult",
+    "SceneScores",
     "aggregate",
     "evaluate_baselines",
     "evaluate_model",
+    "score_scene",
 ]
 
 #: Bumped when what :func:`evaluate_model` / :func:`evaluate_baselines` compute changes
@@ -154,37 +156,81 @@ def aggregate(
     return metrics, nulls, nans, scenes_json
 
 
-def _score_scene(
+@dataclass
+class SceneScores:
+    """What :func:`score_scene` measured on one scene.
+
+    Attributes:
+        values: metric -> this scene's value (ARI family as a fraction, not yet percent),
+            in the order computed.
+        null_reasons: metric -> why it has no value here (``lpips`` without weights).
+        details: free-form notes (the full LPIPS reason).
+    """
+
+    values: dict[str, float]
+    null_reasons: dict[str, str] = field(default_factory=dict)
+    details: dict[str, str] = field(default_factory=dict)
+
+    def append_to(self, per_scene: dict[str, list[float]]) -> None:
+        """Append each of :attr:`values` to its metric's list in ``per_scene`` (the input
+        of :func:`aggregate`)."""
+        for k, v in self.values.items():
+            per_scene.setdefault(k, []).append(v)
+
+
+def score_scene(
+    *,
     pred_rgb: Tensor | None,
     pred_depth: Tensor | None,
     pred_labels: Tensor,
     truth: adapter.SceneTruth,
     input_view: int,
-    lpips_weights: str | None,
-    acc: dict[str, list[float]],
-    reasons: dict[str, str],
-    details: dict[str, str],
-) -> None:
+    lpips_weights: str | None = None,
+    with_lpips: bool = True,
+) -> SceneScores:
+    """Score one scene's prediction against its ground truth.
+
+    Segmentation (:data:`SEG_KEYS`) from ``pred_labels`` always; PSNR / SSIM (and LPIPS
+    when ``with_lpips``) on the novel views when ``pred_rgb`` is given; depth errors on
+    the novel views when ``pred_depth`` is given.
+
+    Args:
+        pred_rgb: [V, 3, H, W] predicted views, or None.
+        pred_depth: [V, H, W] predicted planar depth, or None.
+        pred_labels: int64 [V, H, W] predicted segmentation labels.
+        truth: the scene's ground truth (:func:`benchmark.adapter.ground_truth`).
+        input_view: the view the model sees (not a novel view).
+        lpips_weights: optional LPIPS weight file.
+        with_lpips: compute LPIPS (callers pass False once it proved unavailable).
+
+    Returns:
+        The scene's :class:`SceneScores`; LPIPS without weights is a null reason
+        (:data:`LPIPS_REASON`, the full reason in ``details``), not a value.
+    """
+    values: dict[str, float] = {}
+    reasons: dict[str, str] = {}
+    details: dict[str, str] = {}
     seg = segmentation_metrics(pred_labels[None], truth.instances[None], input_view=input_view)
     for k in SEG_KEYS:
-        acc.setdefault(k, []).append(float(seg[k][0]))
+        values[k] = float(seg[k][0])
     n_views = truth.images.shape[0]
     novel = [v for v in range(n_views) if v != input_view]
     if pred_rgb is not None and novel:
         p, g = pred_rgb[novel].float(), truth.images[novel].float()
-        acc.setdefault("psnr", []).append(float(psnr(p, g).mean()))
-        acc.setdefault("ssim", []).append(float(ssim(p, g).mean()))
-        if "lpips" not in reasons:
-            values, why = lpips_or_null(p, g, weights_path=lpips_weights)
-            if values is None:
+        values["psnr"] = float(psnr(p, g).mean())
+        values["ssim"] = float(ssim(p, g).mean())
+        if with_lpips:
+            lp, why = lpips_or_null(p, g, weights_path=lpips_weights)
+            if lp is None:
                 reasons["lpips"] = LPIPS_REASON
                 details["lpips"] = str(why)
             else:
-                acc.setdefault("lpips", []).append(float(values.mean()))
+                values["lpips"] = float(lp.mean())
     if pred_depth is not None and novel:
         err = depth_errors(pred_depth[novel].float(), truth.depth_z[novel].float())
-        acc.setdefault("depth_abs_rel", []).append(float(torch.nanmean(err["abs_rel"])))
-        acc.setdefault("depth_rmse", []).append(float(torch.nanmean(err["rmse"])))
+        values["depth_abs_rel"] = float(torch.nanmean(err["abs_rel"]))
+        values["depth_rmse"] = float(torch.nanmean(err["rmse"]))
+    return SceneScores(values, reasons, details)
 
 
 def _score_control(
@@ -260,17 +306,18 @@ def evaluate_model(
                 f"predict_scene returned labels {tuple(pred.labels.shape)}, expected "
                 f"{tuple(truth.instances.shape)} like the ground truth"
             )
-        _score_scene(
-            pred.rgb,
-            pred.depth_z,
-            pred.labels,
-            truth,
-            input_view,
-            lpips_weights,
-            acc,
-            reasons,
-            details,
+        scores = score_scene(
+            pred_rgb=pred.rgb,
+            pred_depth=pred.depth_z,
+            pred_labels=pred.labels,
+            truth=truth,
+            input_view=input_view,
+            lpips_weights=lpips_weights,
+            with_lpips="lpips" not in reasons,
         )
+        scores.append_to(acc)
+        reasons.update(scores.null_reasons)
+        details.update(scores.details)
         if len(idx) >= 2:
             ctrl = adapter.predict_scene(
                 model,
@@ -348,62 +395,38 @@ def evaluate_baselines(
     details: dict[str, dict[str, str]] = {k: {} for k in BASELINES}
     t0 = time.perf_counter()
     idx = _scene_indices(dataset, max_scenes)
+
+    def score(
+        name: str, truth: adapter.SceneTruth, labels: Tensor, rgb: Tensor | None = None
+    ) -> SceneScores:
+        scores = score_scene(
+            pred_rgb=rgb,
+            pred_depth=None,
+            pred_labels=labels,
+            truth=truth,
+            input_view=input_view,
+            lpips_weights=lpips_weights,
+            with_lpips="lpips" not in reasons[name],
+        )
+        reasons[name].update(scores.null_reasons)
+        details[name].update(scores.details)
+        return scores
+
     for i in idx:
         truth = adapter.ground_truth(dataset, i)
         shape = truth.instances.shape
         ones = torch.zeros(shape, dtype=torch.long)
-        _score_scene(
-            None,
-            None,
-            ones,
-            truth,
-            input_view,
-            lpips_weights,
-            out["one_label"],
-            reasons["one_label"],
-            details["one_label"],
-        )
+        score("one_label", truth, ones).append_to(out["one_label"])
         rnd = torch.randint(0, num_slots, shape, generator=gen)
-        _score_scene(
-            None,
-            None,
-            rnd,
-            truth,
-            input_view,
-            lpips_weights,
-            out["random_slots"],
-            reasons["random_slots"],
-            details["random_slots"],
-        )
+        score("random_slots", truth, rnd).append_to(out["random_slots"])
         blocks = _blocks(shape, num_slots)
-        _score_scene(
-            None,
-            None,
-            blocks,
-            truth,
-            input_view,
-            lpips_weights,
-            out["spatial_blocks"],
-            reasons["spatial_blocks"],
-            details["spatial_blocks"],
-        )
+        score("spatial_blocks", truth, blocks).append_to(out["spatial_blocks"])
         med = truth.images[input_view].flatten(1).median(dim=1).values  # [3]
         flat = med[None, :, None, None].expand_as(truth.images).contiguous()
-        seg = {}
-        _score_scene(
-            flat,
-            None,
-            ones,
-            truth,
-            input_view,
-            lpips_weights,
-            seg,
-            reasons["median_colour"],
-            details["median_colour"],
-        )
+        image = score("median_colour", truth, ones, flat)
         for k in IMAGE_KEYS:
-            if k in seg:
-                out["median_colour"].setdefault(k, []).extend(seg[k])
+            if k in image.values:
+                out["median_colour"].setdefault(k, []).append(image.values[k])
     wall = (time.perf_counter() - t0) / len(BASELINES)
     results = {}
     for name in BASELINES:

@@ -9,9 +9,9 @@ the local path already uses:
    generator's Ray backend (``generators.ray_backend``: scenes as tasks on Blender
    actors across the cluster);
 2. training runs: one Ray task per distinct model key (``<out>/runs/<key>/``) that has
-   no finished marker, all submitted at once (:func:`benchmark.runner.train_run`);
+   no finished marker, all submitted at once (:func:`benchmark.jobs.train_run`);
 3. evaluations: one Ray task per (model key, test fingerprint) without a cached result
-   (:func:`benchmark.runner.evaluate_run`).
+   (:func:`benchmark.jobs.evaluate_run`).
 
 The row loop that follows then finds every model and evaluation in the caches and only
 assembles rows, baselines, figures and the report, exactly as a local run would. Resume
@@ -31,6 +31,8 @@ from typing import Any
 
 from benchmark.datasets import DatasetInfo
 from benchmark.generator_bridge import DatasetUnavailable
+from benchmark.jobs import read_eval
+from benchmark.log import log
 
 __all__ = ["RayJobError", "cpus_per_task", "run_jobs_on_ray"]
 
@@ -50,16 +52,10 @@ def cpus_per_task(cluster_cpus: int, n_tasks: int) -> int:
     return max(1, int(cluster_cpus) // int(n_tasks))
 
 
-def _log(msg: str) -> None:
-    from benchmark.runner import _log as log
-
-    log(msg)
-
-
 def _train_task(threads: int, kwargs: dict[str, Any]) -> dict[str, Any]:
     import torch
 
-    from benchmark.runner import train_run
+    from benchmark.jobs import train_run
 
     torch.set_num_threads(threads)
     payload, _ = train_run(**kwargs)
@@ -69,7 +65,7 @@ def _train_task(threads: int, kwargs: dict[str, Any]) -> dict[str, Any]:
 def _eval_task(threads: int, args: tuple, kwargs: dict[str, Any]) -> str:
     import torch
 
-    from benchmark.runner import evaluate_run
+    from benchmark.jobs import evaluate_run
 
     torch.set_num_threads(threads)
     evaluate_run(*args, **kwargs)
@@ -108,7 +104,7 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
     """Generate, train and evaluate everything ``measured`` needs as Ray tasks.
 
     Args:
-        ctx: the protocol's :class:`benchmark.runner.Context` (``backend == "ray"``).
+        ctx: the protocol's :class:`benchmark.context.Context` (``backend == "ray"``).
         measured: the protocol's measured rows (after ``--datasets``).
 
     Returns:
@@ -118,7 +114,6 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
         generators.ray_backend.RayMissingError: ray is not installed.
         RayJobError: a training or evaluation task failed (names the job).
     """
-    from benchmark.runner import _read_eval
     from generators.ray_backend import import_ray
 
     ray = import_ray()
@@ -157,7 +152,7 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
         t = time.perf_counter()
         if jobs:
             threads = cpus_per_task(cpus, len(jobs))
-            _log(
+            log(
                 f"ray: {len(jobs)} training run(s) on a cluster of {cpus} CPUs, "
                 f"{threads} CPU(s) each"
             )
@@ -191,12 +186,12 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
             rec = ctx.model(spec.job, train=False)
             test = tests[spec.dataset]
             d = ctx.eval_dir(rec, test)
-            if d not in evals and _read_eval(d) is None:
+            if d not in evals and read_eval(d) is None:
                 evals[d] = (rec, test)
         t = time.perf_counter()
         if evals:
             threads = cpus_per_task(cpus, len(evals))
-            _log(f"ray: {len(evals)} evaluation(s), {threads} CPU(s) each")
+            log(f"ray: {len(evals)} evaluation(s), {threads} CPU(s) each")
             task = ray.remote(_eval_task)
             refs = {}
             for d, (rec, test) in evals.items():

@@ -4,7 +4,8 @@ Data flow::
 
     presets (registry) -> sampling.make_scene (pure Python, seeded) -> spec.SceneSpec
       -> blender_backend (the only bpy import, lazy) -> imageops -> writer (scenefmt)
-    pipeline.generate_dataset(GenerateConfig) drives it; cli (``generate``) wraps it;
+    pipeline.generate_dataset(GenerateConfig) drives it, running worker.render_one in
+    worker processes (or on Ray actors, ray_backend); cli (``generate``) wraps it;
     verify checks a split; preview draws a contact sheet; testing writes ray-cast
     fixtures without bpy.
 

@@ -86,7 +86,7 @@ def check_baseline_denoiser(denoiser: str) -> None:
 
 def _naive_session_class():
     """:class:`BlenderSession` subclass of the baseline (defined lazily: bpy stays out)."""
-    from generators.blender_backend import BlenderSession, _quiet
+    from generators.blender_backend import BlenderSession, quiet_output
 
     class NaiveSession(BlenderSession):
         """Factory reset before every scene; Blender's default light paths (and, with
@@ -104,7 +104,7 @@ def _naive_session_class():
             self.rna_defaults: dict[str, Any] = {}
 
         def build(self, spec: SceneSpec) -> None:
-            with _quiet():
+            with quiet_output():
                 self.bpy.ops.wm.read_factory_settings(use_empty=True)
             self.factory_resets += 1
             c = self.bpy.context.scene.cycles

@@ -25,6 +25,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,7 +46,7 @@ class BpyMissingError(ImportError):
 def import_bpy():
     """Import and return ``bpy``; :class:`BpyMissingError` with an install hint otherwise."""
     try:
-        with _quiet():  # Cycles prints a CUDA-loader warning on import
+        with quiet_output():  # Cycles prints a CUDA-loader warning on import
             import bpy
     except ImportError as e:
         raise BpyMissingError(
@@ -80,8 +81,9 @@ class ViewPasses:
 
 
 @contextlib.contextmanager
-def _quiet():
-    """Silence Blender's C-level stdout/stderr chatter (progress lines, 'Saved:')."""
+def quiet_output() -> Iterator[None]:
+    """Silence Blender's C-level stdout/stderr chatter (progress lines, 'Saved:') inside a
+    ``with`` block (file descriptors 1 and 2 point at /dev/null, then back)."""
     null = os.open(os.devnull, os.O_WRONLY)
     saved = [os.dup(1), os.dup(2)]
     try:
@@ -147,7 +149,7 @@ class BlenderSession:
         if any(c in str(self.tmp_dir) for c in "{}#"):
             raise ValueError(f"tmp_dir must not contain braces or '#': {self.tmp_dir}")
         self.scenes_rendered = 0
-        with _quiet():
+        with quiet_output():
             self.bpy.ops.wm.read_factory_settings(use_empty=True)
 
     def close(self) -> None:
@@ -281,7 +283,7 @@ class BlenderSession:
         from mathutils import Vector
 
         self._clear()
-        with _quiet():  # the first Cycles setting probes for CUDA and warns on stderr
+        with quiet_output():  # the first Cycles setting probes for CUDA and warns on stderr
             self._configure(spec.render)
         sc = bpy.context.scene
         g = spec.ground
@@ -361,7 +363,7 @@ class BlenderSession:
         path = self.tmp_dir / f"view{view:02d}.exr"
         bpy.context.scene.render.filepath = str(path)
         t0 = time.perf_counter()
-        with _quiet():
+        with quiet_output():
             bpy.ops.render.render(write_still=True)
         dt = time.perf_counter() - t0
         passes = read_multilayer_exr(path)

@@ -16,12 +16,12 @@ Data flow::
 
 :func:`generate_dataset` is the importable entry point: the ``generate`` CLI and
 the benchmark (``benchmark.generator_bridge``) call it. Nothing here imports bpy;
-only the worker processes do, through ``blender_backend``.
+only the worker processes do (the task :func:`generators.worker.render_one`, re-exported
+here), through ``blender_backend``.
 """
 
 from __future__ import annotations
 
-import atexit
 import concurrent.futures as cf
 import json
 import multiprocessing as mp
@@ -33,6 +33,7 @@ from pathlib import Path
 import scenefmt
 from generators.presets import PRESETS, Preset, get_preset, scene_preset
 from generators.spec import RenderSettings
+from generators.worker import close_worker_session, init_worker, render_one
 from generators.writer import manifest
 
 MAX_SCENES = 10_000  # sc%04d file names
@@ -335,55 +336,6 @@ def _usable_source(cfg: GenerateConfig, render: RenderSettings) -> scenefmt.Spli
     return scenefmt.SplitLayout(src, n_views=sp.camera.n_views) if ok else None
 
 
-# ---------------------------------------------------------------------------- workers
-
-_SESSION = None
-_THREADS = 1
-
-
-def _worker_init(threads: int) -> None:
-    """Pool initializer: remember the thread count; die with the parent (Linux)."""
-    global _THREADS
-    _THREADS = threads
-    try:  # PR_SET_PDEATHSIG = 1: a killed driver takes its workers with it
-        import ctypes
-        import signal
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)
-    except (OSError, AttributeError):  # pragma: no cover - not Linux
-        pass
-
-
-def render_one(
-    preset: Preset, split: str, index: int, seed: int, render: RenderSettings, out: str
-) -> dict[str, float]:
-    """Sample, render and write scene ``index`` in this process (the pool task).
-
-    Returns:
-        ``{"index", "render_s" (Cycles time, all views), "scene_s" (wall)}``.
-    """
-    global _SESSION
-    from generators.blender_backend import BlenderSession
-    from generators.imageops import linear_to_srgb8
-    from generators.sampling import make_scene
-    from generators.writer import ViewImages, write_scene
-
-    t0 = time.perf_counter()
-    if _SESSION is None:
-        _SESSION = BlenderSession(threads=_THREADS)
-        atexit.register(_SESSION.close)
-    spec = make_scene(preset, split, index, seed, render)
-    passes = _SESSION.render_scene(spec)
-    views = [ViewImages(linear_to_srgb8(v.rgb_linear), v.ids, v.depth_z) for v in passes]
-    layout = scenefmt.SplitLayout(out, n_views=preset.camera.n_views)
-    write_scene(layout, spec, views, grayscale_preset=preset.name if preset.grayscale else None)
-    return {
-        "index": index,
-        "render_s": sum(v.render_s for v in passes),
-        "scene_s": time.perf_counter() - t0,
-    }
-
-
 # ---------------------------------------------------------------------------- driver
 
 
@@ -486,7 +438,7 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
             with cf.ProcessPoolExecutor(
                 max_workers=workers,
                 mp_context=mp.get_context("spawn"),
-                initializer=_worker_init,
+                initializer=init_worker,
                 initargs=(cfg.n_threads(),),
             ) as pool:
                 futures = [
@@ -536,7 +488,9 @@ __all__ = [
     "BACKENDS",
     "GenerateConfig",
     "GenerateSummary",
+    "close_worker_session",
     "cpu_cores",
     "generate_dataset",
+    "init_worker",
     "render_one",
 ]

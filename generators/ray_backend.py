@@ -4,7 +4,7 @@ Where this sits: :func:`generators.pipeline.generate_dataset` decides *what* to 
 (this shard's scenes minus the complete ones, manifest, temp-file clean-up) and calls
 :func:`render_scenes` here instead of its local process pool when
 ``GenerateConfig.backend == "ray"``. Each actor is a worker process that runs the same
-task as the local pool, :func:`generators.pipeline.render_one` (sample -> Cycles ->
+task as the local pool, :func:`generators.worker.render_one` (sample -> Cycles ->
 atomic write), so the bytes on disk do not depend on the backend, and resume works the
 same way (complete scenes are never scheduled; a killed run leaves only temp files,
 removed by the next run).
@@ -99,9 +99,9 @@ def _actor_class(ray: Any) -> Any:
         """One worker process holding one Blender session, reused across scenes."""
 
         def __init__(self, threads: int, out: str) -> None:
-            from generators import pipeline
+            from generators.worker import init_worker
 
-            pipeline._worker_init(threads)
+            init_worker(threads)
             # The driver wrote the manifest before starting actors: an actor that cannot
             # see it runs on a node without the shared --out folder.
             if not (Path(out) / "manifest.json").is_file():
@@ -122,7 +122,7 @@ def _actor_class(ray: Any) -> Any:
             render: RenderSettings,
             out: str,
         ) -> dict[str, float]:
-            from generators.pipeline import render_one
+            from generators.worker import render_one
 
             node = ray.get_runtime_context().get_node_id()
             return {
@@ -133,11 +133,9 @@ def _actor_class(ray: Any) -> Any:
 
         def retire(self) -> None:
             """Close the Blender session and end the process (worker recycling)."""
-            from generators import pipeline
+            from generators.worker import close_worker_session
 
-            if pipeline._SESSION is not None:
-                pipeline._SESSION.close()
-                pipeline._SESSION = None
+            close_worker_session()
             ray.actor.exit_actor()
 
     return ray.remote(max_restarts=2, max_task_retries=2)(BlenderWorker)
@@ -165,7 +163,7 @@ def render_scenes(
     shuts down what it started.
 
     Args:
-        preset, split, seed, render: as for :func:`generators.pipeline.render_one`.
+        preset, split, seed, render: as for :func:`generators.worker.render_one`.
         indices: scene indices to render (the caller removed the complete ones).
         out: the split folder (exists, holds the manifest; shared by all nodes).
         workers, threads: see :func:`plan`.

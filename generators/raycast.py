@@ -12,6 +12,7 @@ Needs ``trimesh`` with ``embreex`` (pure-numpy trimesh ray casting is far too sl
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -33,7 +34,13 @@ class CastResult:
     depth_z: np.ndarray
 
 
-def _intersector(mesh: geometry.TriMesh):
+def intersector(mesh: geometry.TriMesh) -> Any:
+    """An embree ray intersector of ``mesh`` (``trimesh.ray.ray_pyembree.RayMeshIntersector``:
+    ``intersects_first``, ``intersects_location``); build it once, query it many times.
+
+    Raises:
+        ImportError: trimesh with embree is not installed (the message names the fix).
+    """
     try:
         import trimesh
         from trimesh.ray.ray_pyembree import RayMeshIntersector
@@ -69,7 +76,7 @@ def cast_view(spec: SceneSpec, view: int, resolution: int | None = None, meshes=
     v = spec.views[view]
     K, c2w = v.K(res, res), v.c2w()
     origins, dirs = geometry.pixel_rays(K, c2w, res, res)
-    inter = _intersector(merged)
+    inter = intersector(merged)
     locs, ray_idx, tri_idx = inter.intersects_location(origins, dirs, multiple_hits=False)
     out_ids = np.zeros(res * res, dtype=np.uint8)
     depth = np.full(res * res, np.inf, dtype=np.float64)

@@ -286,11 +286,11 @@ def visible_pixel_counts(spec: SceneSpec, resolution: int, view: int = 0) -> dic
 
 def _corner_ids(spec: SceneSpec, meshes) -> np.ndarray:
     """Instance ids hit by a 5x5 ray grid over each view's top-left corner region."""
-    from generators.raycast import _intersector
+    from generators.raycast import intersector
 
     merged, owner = geometry.concat_meshes(meshes[0])
     face_ids = np.asarray(meshes[1], dtype=np.uint8)[owner]
-    inter = _intersector(merged)
+    inter = intersector(merged)
     t = np.linspace(0.0, _CORNER_FRACTION, 5)
     uu, vv = np.meshgrid(t, t)
     hits = []

@@ -46,7 +46,9 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -193,6 +195,60 @@ def make_query_step(model: SVORF, batch):
     return step
 
 
+def time_interleaved(
+    steps: Sequence[Callable[[], object]],
+    *,
+    repeats: int,
+    warmup: int = 0,
+    sync: Callable[[], None] | None = None,
+    after_step: Callable[[int], None] | None = None,
+    after_warmup: Callable[[], None] | None = None,
+    on_repeat: Callable[[int, list[float]], None] | None = None,
+) -> list[list[float]]:
+    """Wall times of every step, **interleaved**: round r runs every step once, in turn, so
+    that the load of other processes hits all steps alike (this module's method; the
+    benchmark's ``tradeoff`` protocol times its points with it too).
+
+    Args:
+        steps: the callables to time.
+        repeats: timed rounds.
+        warmup: untimed rounds first (allocator, caches).
+        sync: called right before and right after each call, inside the timing (e.g.
+            ``torch.cuda.synchronize``), None = nothing.
+        after_step: called with the step's index after each call, outside the timing.
+        after_warmup: called once between the warm-up and the timed rounds.
+        on_repeat: called after each timed round with its index and that round's times.
+
+    Returns:
+        Per step, its ``repeats`` times in seconds.
+    """
+
+    def timed(i: int) -> float:
+        if sync is not None:
+            sync()
+        t0 = time.perf_counter()
+        steps[i]()
+        if sync is not None:
+            sync()
+        dt = time.perf_counter() - t0
+        if after_step is not None:
+            after_step(i)
+        return dt
+
+    for _ in range(warmup):
+        for i in range(len(steps)):
+            timed(i)
+    if after_warmup is not None:
+        after_warmup()
+    times: list[list[float]] = [[] for _ in steps]
+    for r in range(repeats):
+        for i in range(len(steps)):
+            times[i].append(timed(i))
+        if on_repeat is not None:
+            on_repeat(r, [t[-1] for t in times])
+    return times
+
+
 def train_step(model: SVORF, batch) -> None:
     """Forward, loss and backward of one batch (perturbed samples, as in training)."""
     images, o, d, rgb = batch
@@ -202,7 +258,7 @@ def train_step(model: SVORF, batch) -> None:
     loss.backward()
 
 
-class _KeptPairs:
+class KeptPairs:
     """Counts the (point, slot) pairs a model evaluates (wraps ``SVORF._eval_slots``)."""
 
     def __init__(self, model: SVORF) -> None:
@@ -321,24 +377,28 @@ def run(
     common = {k: v for k, v in variants[0].overrides.items() if k not in KNOBS_OFF}
     state = build_model(scale, Variant("init", common), None).state_dict()
     models = [build_model(scale, v, state) for v in variants]
-    counters = [_KeptPairs(m) for m in models]
+    counters = [KeptPairs(m) for m in models]
     batch = make_batch(models[0].cfg, scenes, rays)
     queries = [make_query_step(m, batch) for m in models]
-    for _ in range(warmup):
-        for m, q in zip(models, queries):
-            train_step(m, batch)
-            q()
-    for c in counters:
-        c.kept = c.total = 0.0
-    for r in range(repeats):
-        for v, m, q in zip(variants, models, queries):
-            t0 = time.perf_counter()
-            train_step(m, batch)
-            t1 = time.perf_counter()
-            q()
-            v.times.append(t1 - t0)
-            v.query_times.append(time.perf_counter() - t1)
-        log(f"repeat {r + 1}/{repeats}: " + " ".join(f"{v.times[-1]:.3f}" for v in variants))
+
+    def reset_counters() -> None:
+        for c in counters:
+            c.kept = c.total = 0.0
+
+    # Per variant its training step, then its per-point evaluation alone.
+    steps = [s for m, q in zip(models, queries) for s in (partial(train_step, m, batch), q)]
+    times = time_interleaved(
+        steps,
+        repeats=repeats,
+        warmup=warmup,
+        after_warmup=reset_counters,
+        on_repeat=lambda r, last: log(
+            f"repeat {r + 1}/{repeats}: " + " ".join(f"{t:.3f}" for t in last[0::2])
+        ),
+    )
+    for v, step_times, query_times in zip(variants, times[0::2], times[1::2]):
+        v.times.extend(step_times)
+        v.query_times.extend(query_times)
     refs: dict[float, SVORF] = {}  # error reference of each sharpen
     for v, m in zip(variants, models):
         if v.reference:

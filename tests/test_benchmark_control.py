@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from benchmark import adapter, runner
+from benchmark import adapter, context
 from benchmark.evaluate import CONTROL_KEYS, CONTROL_REASON, evaluate_model
 from benchmark.runner import Context, verdicts_for
 from benchmark.scales import get_scale
@@ -188,5 +188,5 @@ def test_evaluation_cache_key_includes_the_eval_version(tmp_path, monkeypatch):
     ctx = Context("segmentation", "smoke", tmp_path, tmp_path / "data", progress=False)
     test = SimpleNamespace(fingerprint="ab" * 32)
     before = ctx._eval_dir("run", test, {})
-    monkeypatch.setattr(runner, "EVAL_VERSION", "older")
+    monkeypatch.setattr(context, "EVAL_VERSION", "older")
     assert ctx._eval_dir("run", test, {}) != before

@@ -14,7 +14,7 @@ import torch
 
 from benchmark import adapter
 from benchmark.protocols import _speed_worker as worker
-from benchmark.protocols import speed
+from benchmark.protocols import speed, speed_generator
 from benchmark.report import new_report
 from benchmark.runner import Context
 from benchmark.schema import METRIC_UNITS, check_report
@@ -132,11 +132,11 @@ def test_compare_rows_take_medians_and_report_failed_repeats():
         "rays_per_scene": 64,
     }
     ok2 = {**ok, "step_times_s": [0.4, 0.5], "peak_memory_mb": 600.0, "train_memory_mb": 70.0}
-    row = speed._compare_row("x", "svorf", [ok, ok2], [])
+    row = speed.compare_row("x", "svorf", [ok, ok2], [])
     assert row["metrics"]["step_time_s"] == 0.3 and row["n_cases"] == 5
     assert row["metrics"]["peak_memory_mb"] == 500.0 and row["repeats"] == 2
     oom = {"error": "out_of_memory", "message": "can't allocate"}
-    row = speed._compare_row("y", "uorf", [oom], ["out_of_memory (limit 10 MiB): x"])
+    row = speed.compare_row("y", "uorf", [oom], ["out_of_memory (limit 10 MiB): x"])
     assert row["n_cases"] == 0 and row["repeats_failed"] == 1
     assert all(v is None for v in row["metrics"].values())
     assert row["null_reasons"]["step_time_s"].startswith("out_of_memory")
@@ -203,9 +203,9 @@ def test_baseline_rows_target_needs_speed_equal_psnr_and_exact_masks(
     tmp_path, monkeypatch, speedup, psnr, base_psnr, exact, met
 ):
     ctx = Context("speed", "cpu", tmp_path / "r", tmp_path / "d", data_source="generator")
-    monkeypatch.setattr(speed, "_generator_unavailable", lambda ctx, options: None)
+    monkeypatch.setattr(speed_generator, "_generator_unavailable", lambda ctx, options: None)
     monkeypatch.setattr(
-        speed, "_compare_with_script", _fake_compare(speedup, psnr, base_psnr, exact)
+        speed_generator, "_compare_with_script", _fake_compare(speedup, psnr, base_psnr, exact)
     )
     opts = speed.default_options("cpu")
     assert opts.baseline_denoisers == ("factory", "tuned") and opts.baseline_resolution == 128
@@ -220,10 +220,10 @@ def test_baseline_rows_target_needs_speed_equal_psnr_and_exact_masks(
     assert rows[0]["target"] == 1.5 and rows[0]["target_met"] is met
     assert rows[1]["target"] is None and rows[1]["target_met"] is None
     assert "ACCURATE" in rows[0]["note"] and "FAST" in rows[1]["note"]
-    note = speed._baseline_note(rows[0])
+    note = speed.baseline_note(rows[0])
     assert f"{speedup:.2f}x" in note and note.endswith("met")
     assert ("NOT met" in note) is (not met)
-    assert "no target" in speed._baseline_note(rows[1])
+    assert "no target" in speed.baseline_note(rows[1])
     rep = new_report("speed", "cpu", "cpu")
     rep["rows"] = rows
     assert [p for p in check_report(rep) if "rows" in p] == []
@@ -235,7 +235,7 @@ def test_baseline_rows_null_with_reason_without_generator(tmp_path):
     assert [r["variant"] for r in rows] == ["factory"] and rows[0]["n_cases"] == 0
     assert all(v is None for v in rows[0]["metrics"].values()) and rows[0]["target_met"] is None
     assert "synthetic" in rows[0]["null_reasons"]["baseline_speedup"]
-    assert "null (" in speed._baseline_note(rows[0])
+    assert "null (" in speed.baseline_note(rows[0])
     with pytest.raises(ValueError, match="baseline_denoisers"):
         speed.SpeedOptions(baseline_denoisers=("nope",))
     with pytest.raises(ValueError, match="baseline_psnr_scenes"):

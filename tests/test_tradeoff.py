@@ -162,7 +162,7 @@ def test_knob_points_follow_the_model(tmp_path):
         num_slots=4, fg_box=3.0, bf16_autocast=True
     )
     ws = tradeoff.WeightSet(
-        "x", "t", tradeoff._knobs_off(base), {}, 1.0, tuple(KNOBS_INIT) + ("combined",), ""
+        "x", "t", tradeoff.knobs_off(base), {}, 1.0, tuple(KNOBS_INIT) + ("combined",), ""
     )
     assert ws.base.fg_box == 3.0 and not ws.base.bf16_autocast
     pts = tradeoff.knob_points(ws, "smoke")
@@ -390,9 +390,9 @@ def test_training_curve_names_what_beats_a_budget_end_off_the_front(tmp_path):
 
 def test_cached_run_steps_are_the_steps_done_not_the_limit():
     marker = {"key_source": {"train": {"steps": 1_000_000}}, "summary": {"steps": 16920}}
-    assert tradeoff._steps_done(marker) == 16920
-    assert tradeoff._steps_done({"key_source": {"train": {"steps": 500}}}) == 500
-    assert tradeoff._steps_done({}) == 0
+    assert tradeoff.steps_done(marker) == 16920
+    assert tradeoff.steps_done({"key_source": {"train": {"steps": 500}}}) == 500
+    assert tradeoff.steps_done({}) == 0
 
 
 # ----------------------------------------------------------------------------- generator curve

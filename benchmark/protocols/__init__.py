@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from benchmark.runner import Context
+from benchmark.context import Context
 from scenefmt.cli_util import choose
 
 __all__ = ["PROTOCOLS", "TABLE_PROTOCOLS", "NotImplementedProtocol", "get_protocol"]

@@ -9,6 +9,8 @@ coincident samples), many samples, and inputs in float16 / bfloat16 / float32 /
 float64 and under bf16 autocast; compares colour, opacity and depth with
 :func:`reference_render` (float64, the closed-form quadrature, no clamping), and
 counts NaN/Inf in the outputs and in the gradients. No dataset or model needed.
+The float64 oracles live in :mod:`.stability_reference` (re-exported here); the cases
+beyond the renderer in :mod:`.stability_cases`.
 
 Each case is a row of table ``stability`` with ``max_abs_err_rgb``,
 ``max_abs_err_acc``, ``max_abs_err_depth``, ``max_rel_err_depth`` and
@@ -27,63 +29,32 @@ import torch
 from torch import Tensor
 
 from benchmark import adapter
-from benchmark.runner import Context
+from benchmark.context import Context
+from benchmark.protocols import stability_cases as sc
+from benchmark.protocols.stability_reference import (
+    loguniform,
+    nonfinite_count,
+    reference_render,
+    reference_weights,
+)
 
-__all__ = ["CASES", "reference_render", "reference_weights", "run_stability"]
+__all__ = [
+    "CASES",
+    "loguniform",
+    "nonfinite_count",
+    "reference_render",
+    "reference_weights",
+    "run_stability",
+]
 
 TOL_RGB = 1e-4
 TOL_ACC = 1e-4
 TOL_DEPTH_REL = 1e-4  # relative to the largest sample distance of the ray batch
 
 
-def reference_weights(sigma: Tensor, delta: Tensor) -> Tensor:
-    """Quadrature weights ``T_i (1 - exp(-sigma_i delta_i))`` in float64 along the last axis,
-    without clamping; an interval of length 0 contributes nothing whatever its density
-    (``0 * inf`` is taken as 0)."""
-    s = sigma.double().clamp_min(0.0)
-    delta = delta.double()
-    tau = torch.where(delta > 0, s * delta, torch.zeros_like(s))
-    excl = torch.cat([torch.zeros_like(tau[..., :1]), torch.cumsum(tau, -1)[..., :-1]], -1)
-    return torch.exp(-excl) * -torch.expm1(-tau)  # exp(-inf) = 0; tau = inf -> alpha 1
-
-
-def reference_render(sigma: Tensor, rgb: Tensor, t: Tensor, last_delta: float) -> dict[str, Tensor]:
-    """Exact NeRF quadrature in float64 (the oracle).
-
-    ``w_i = T_i (1 - exp(-sigma_i delta_i))``, ``T_i = exp(-sum_{j<i} sigma_j delta_j)``,
-    ``delta_i = t_{i+1} - t_i`` and ``delta_N = last_delta``; an interval of length 0
-    contributes nothing whatever its density (``0 * inf`` is taken as 0).
-
-    Args:
-        sigma: [R, N] densities (may hold inf).
-        rgb: [R, N, 3].
-        t: [R, N] sorted distances.
-        last_delta: length of the last interval.
-
-    Returns:
-        ``{"rgb" [R, 3], "depth" [R], "acc" [R], "weights" [R, N]}``, float64.
-    """
-    t64 = t.double()
-    delta = torch.cat(
-        [t64[:, 1:] - t64[:, :-1], torch.full_like(t64[:, :1], float(last_delta))], 1
-    ).clamp_min(0)
-    w = reference_weights(sigma, delta)
-    return {
-        "rgb": (w[..., None] * rgb.double()).sum(1),
-        "depth": (w * t64).sum(1),
-        "acc": w.sum(1),
-        "weights": w,
-    }
-
-
 def _rays(gen: torch.Generator, n_rays: int, n: int, t_lo: float, t_hi: float) -> Tensor:
     t = t_lo + (t_hi - t_lo) * torch.rand(n_rays, n, generator=gen, dtype=torch.float64)
     return t.sort(1).values
-
-
-def _loguniform(gen: torch.Generator, shape: tuple[int, ...], lo: float, hi: float) -> Tensor:
-    u = torch.rand(*shape, generator=gen, dtype=torch.float64)
-    return torch.exp(math.log(lo) + u * (math.log(hi) - math.log(lo)))
 
 
 Case = Callable[[torch.Generator], tuple[Tensor, Tensor, Tensor, float]]
@@ -92,7 +63,7 @@ Case = Callable[[torch.Generator], tuple[Tensor, Tensor, Tensor, float]]
 def _case_moderate(g):
     t = _rays(g, 256, 64, 6.0, 20.0)
     return (
-        _loguniform(g, t.shape, 1e-3, 1e2),
+        loguniform(g, t.shape, 1e-3, 1e2),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e10,
@@ -115,7 +86,7 @@ def _case_empty(g):
 
 def _case_opaque_first(g):
     t = _rays(g, 64, 64, 6.0, 20.0)
-    sigma = _loguniform(g, t.shape, 1e-2, 1e2)
+    sigma = loguniform(g, t.shape, 1e-2, 1e2)
     sigma[:, 0] = float("inf")
     return sigma, torch.rand(*t.shape, 3, generator=g, dtype=torch.float64), t, 1e10
 
@@ -123,7 +94,7 @@ def _case_opaque_first(g):
 def _case_tiny_distances(g):
     t = _rays(g, 256, 64, 1e-6, 1e-5)
     return (
-        _loguniform(g, t.shape, 1e3, 1e7),
+        loguniform(g, t.shape, 1e3, 1e7),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e-6,
@@ -133,7 +104,7 @@ def _case_tiny_distances(g):
 def _case_huge_distances(g):
     t = _rays(g, 256, 64, 1e4, 1e6)
     return (
-        _loguniform(g, t.shape, 1e-8, 1e-4),
+        loguniform(g, t.shape, 1e-8, 1e-4),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e5,
@@ -144,7 +115,7 @@ def _case_coincident(g):
     t = _rays(g, 128, 32, 6.0, 20.0)
     t = torch.repeat_interleave(t, 2, dim=1)  # every sample twice: delta = 0 intervals
     return (
-        _loguniform(g, t.shape, 1e-2, 1e4),
+        loguniform(g, t.shape, 1e-2, 1e4),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e10,
@@ -154,7 +125,7 @@ def _case_coincident(g):
 def _case_many_samples(g):
     t = _rays(g, 64, 1024, 6.0, 20.0)
     return (
-        _loguniform(g, t.shape, 1e-3, 1e1),
+        loguniform(g, t.shape, 1e-3, 1e1),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         1e10,
@@ -164,7 +135,7 @@ def _case_many_samples(g):
 def _case_finite_far(g):
     t = _rays(g, 256, 64, 6.0, 20.0)
     return (
-        _loguniform(g, t.shape, 1e-3, 1e1),
+        loguniform(g, t.shape, 1e-3, 1e1),
         torch.rand(*t.shape, 3, generator=g, dtype=torch.float64),
         t,
         0.05,
@@ -176,7 +147,7 @@ def _case_wide(g):
     # to 0 or one ulp: the reference sees the same rounded t); 10% empty samples.
     u = torch.rand(256, 64, generator=g, dtype=torch.float64)
     t = 1.0 + torch.cumsum(torch.exp(math.log(1e-8) + u * (math.log(1e3) - math.log(1e-8))), 1)
-    sigma = _loguniform(g, t.shape, 1e-3, 1e8)
+    sigma = loguniform(g, t.shape, 1e-3, 1e8)
     sigma[torch.rand(t.shape, generator=g) < 0.1] = 0.0
     return sigma, torch.rand(*t.shape, 3, generator=g, dtype=torch.float64), t, 1e3
 
@@ -202,10 +173,6 @@ CASES: list[tuple[str, Case, torch.dtype, bool | torch.dtype]] = [
     ("moderate densities, fp16 autocast", _case_moderate, torch.float32, torch.float16),
     ("extreme densities, fp16 autocast", _case_extreme_density, torch.float32, torch.float16),
 ]
-
-
-def _nonfinite(x: Tensor | None) -> int:
-    return 0 if x is None else int((~torch.isfinite(x.float())).sum())
 
 
 def run_case(
@@ -240,11 +207,11 @@ def run_case(
         (depth.detach().cpu().double() - ref["depth"]).abs().nan_to_num(float("inf")).max()
     )
     nonfinite = (
-        _nonfinite(out_rgb)
-        + _nonfinite(depth)
-        + _nonfinite(acc)
-        + _nonfinite(sigma.grad)
-        + _nonfinite(rgb.grad)
+        nonfinite_count(out_rgb)
+        + nonfinite_count(depth)
+        + nonfinite_count(acc)
+        + nonfinite_count(sigma.grad)
+        + nonfinite_count(rgb.grad)
     )
     rel = err_depth / t_scale if t_scale > 0 else err_depth
     passed = nonfinite == 0 and err_rgb <= TOL_RGB and err_acc <= TOL_ACC and rel <= TOL_DEPTH_REL
@@ -287,7 +254,6 @@ def run_stability(ctx: Context) -> Path:
     import time
 
     from benchmark.figures import stability_chart
-    from benchmark.protocols import stability_cases as sc
 
     report = ctx.base_report()
     rows = []

@@ -35,12 +35,12 @@ from torch import Tensor
 
 from benchmark import adapter
 from benchmark.metrics import ari, fg_ari_score, psnr, ssim
-from benchmark.protocols.stability import (
-    _loguniform,
+from benchmark.protocols.stability_reference import (
+    loguniform,
+    nonfinite_count,
     reference_render,
     reference_weights,
 )
-from benchmark.protocols.stability import _nonfinite as _nonfinite_one
 
 __all__ = [
     "COMPOSE_CASES",
@@ -69,7 +69,7 @@ def _autocast(dtype: torch.dtype | None):
 
 
 def _nonfinite(*xs: Tensor | None) -> int:
-    return sum(_nonfinite_one(x) for x in xs)
+    return sum(nonfinite_count(x) for x in xs)
 
 
 def _maxerr(a: Tensor, b: Tensor) -> float:
@@ -148,7 +148,7 @@ _P = _R * _N
 
 def _c_moderate(g):
     logits = 3.0 * torch.randn(_B, _P, _K, generator=g, dtype=torch.float64)
-    sig = _loguniform(g, (_B, _K, _P), 1e-3, 1e2)
+    sig = loguniform(g, (_B, _K, _P), 1e-3, 1e2)
     return (logits, None, *_fields(g, sig), _t(g))
 
 
@@ -294,7 +294,7 @@ LossCase = Callable[[torch.Generator], tuple[Tensor, Tensor, Tensor, Tensor | No
 
 def _l_moderate(g):
     t = _t(g)
-    sig = _loguniform(g, (_B, _K, _R, _N), 1e-3, 1e2)
+    sig = loguniform(g, (_B, _K, _R, _N), 1e-3, 1e2)
     return sig, t, torch.full((_B, _R), _FAR, dtype=torch.float64), None
 
 
@@ -305,7 +305,7 @@ def _l_extreme(g):
 
 
 def _l_spacings(g):
-    t = _NEAR + torch.cumsum(_loguniform(g, (_B, _R, _N), 1e-8, 1e3), -1)
+    t = _NEAR + torch.cumsum(loguniform(g, (_B, _R, _N), 1e-8, 1e3), -1)
     sig = _pick(g, [0.0, 1e-3, 1.0, 1e3, 1e8], (_B, _K, _R, _N))
     return sig, t, t[..., -1] + 1.0, torch.rand(_B, _K, generator=g) < 0.7
 

@@ -14,11 +14,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from benchmark.context import Context
 from benchmark.display import table_ref, table_title
 from benchmark.figures import bar_chart, qualitative_grid
+from benchmark.jobs import ModelJob
 from benchmark.orderings import Ordering
 from benchmark.paper_numbers import PAPER_TABLES
-from benchmark.runner import Context, MeasuredRow, ModelJob, run_table_protocol
+from benchmark.rows import MeasuredRow
+from benchmark.runner import run_table_protocol
 
 __all__ = [
     "MEASURED_ROWS",

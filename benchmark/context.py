@@ -1,0 +1,526 @@
+"""The run context of a protocol: folders, scale, device, seeds, and the cached datasets,
+models and evaluations every protocol shares.
+
+Where this sits: ``benchmark run NAME`` builds a :class:`Context` and hands it to the
+protocol's function (:mod:`benchmark.protocols`); table protocols then go through
+:func:`benchmark.runner.run_table_protocol`. The work itself is in :mod:`benchmark.jobs`
+(training, evaluation) and :mod:`benchmark.datasets`; this module decides what is cached
+where, and writes the report's common parts (:meth:`Context.base_report`,
+:meth:`Context.finish`).
+
+Caching and resume (all writes atomic):
+
+- models: ``<out>/runs/<key>/`` with ``key = hash(dataset fingerprint, model config,
+  train config without bookkeeping fields, seed, adapter version[, training wall-time
+  budget])``. svorf writes its checkpoints there and resumes an interrupted run (a
+  budgeted run counts the time already trained); ``benchmark_run.json`` marks a
+  finished one, which any later protocol with the same key reuses.
+- evaluations: ``<out>/evals/<model key>-<test fingerprint>-<eval key>/result.json``
+  (+ ``sample.npz`` for the qualitative figure), shared by protocols; the eval key
+  includes :data:`benchmark.evaluate.EVAL_VERSION`, so a change in what an evaluation
+  computes recomputes it (from the cached model).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmark import adapter
+from benchmark.datasets import DatasetInfo, dataset_dir, ensure_dataset
+from benchmark.evaluate import BASELINES, EVAL_VERSION, EvalResult, evaluate_baselines
+from benchmark.jobs import ModelJob, evaluate_run, read_eval, train_run, write_eval
+from benchmark.log import log
+from benchmark.metrics import lpips_weight_candidates
+from benchmark.report import new_report, stable_hash, write_report
+from benchmark.scales import ScaleSettings, get_scale
+
+__all__ = ["BACKENDS", "BUDGET_STEP_CAP", "Context", "ModelRecord"]
+
+#: TrainConfig fields that do not change what is learned (left out of the cache key).
+_BOOKKEEPING = ("device", "log_every", "ckpt_every", "eval_every", "eval_scenes")
+
+#: Step limit of a run with a wall-clock budget (``--train-minutes``) and no ``--steps``:
+#: the budget is what stops it (as in ``python -m svorf.recipe train-eval --minutes``).
+BUDGET_STEP_CAP = 1_000_000
+
+#: Where a table protocol's jobs run (``--backend``).
+BACKENDS = ("local", "ray")
+
+
+@dataclass
+class ModelRecord:
+    """A trained model (run folder) and what it took."""
+
+    key: str
+    run_dir: Path
+    job: ModelJob
+    train_dataset: DatasetInfo
+    model_config: dict[str, Any]
+    train_config: dict[str, Any]
+    seed: int
+    reused: bool
+    train_wall_s: float
+    summary: dict[str, Any]
+    config_source: str = ""
+    train_budget_s: float | None = None
+
+    @property
+    def steps_done(self) -> int | None:
+        """Optimizer steps the run finished (svorf's summary), None if unknown."""
+        v = self.summary.get("steps")
+        return int(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+    def budget_report(self) -> dict[str, Any]:
+        """Steps done, training wall time and what stopped the run."""
+        cap = int(self.train_config.get("steps") or 0)
+        done = self.steps_done
+        return {
+            "minutes": None if self.train_budget_s is None else self.train_budget_s / 60.0,
+            "max_wall_s": self.train_budget_s,
+            "step_limit": cap,
+            "steps_done": done,
+            "train_wall_s": float(self.train_wall_s),
+            "stopped_by": None
+            if done is None
+            else ("steps" if done >= cap or self.train_budget_s is None else "time_budget"),
+        }
+
+    def to_report(self) -> dict[str, Any]:
+        """The record as the report's ``models`` entry."""
+        return {
+            "run_key": self.key,
+            "run_dir": str(self.run_dir),
+            "variant": self.job.variant,
+            "train_dataset": self.train_dataset.name,
+            "train_dataset_fingerprint": self.train_dataset.fingerprint,
+            "model_config": self.model_config,
+            "train_config": self.train_config,
+            "seed": self.seed,
+            "reused": self.reused,
+            "train_wall_s": float(self.train_wall_s),
+            "steps_done": self.steps_done,
+            "config_source": self.config_source,
+            "train_budget": self.budget_report(),
+            "init_from": self.summary.get("init_from"),
+            "summary": self.summary,
+        }
+
+
+class Context:
+    """Everything one protocol run shares: folders, scale, device, caches and timers.
+
+    Args:
+        protocol: protocol name.
+        scale: ``smoke`` / ``cpu`` / ``paper``.
+        out: the ``--out`` folder (reports, runs, evaluation cache).
+        data: the ``--data`` folder (datasets).
+        device: torch device string for training and evaluation.
+        data_source: ``generator`` or ``synthetic`` (see :mod:`benchmark.datasets`).
+        seed: base seed (data, training and evaluation seeds derive from it).
+        progress: show progress bars.
+        lpips_weights: optional LPIPS weight file.
+        train_steps: override of the scale's training steps (None = the scale's, or
+            :data:`BUDGET_STEP_CAP` with ``train_minutes``).
+        train_minutes: training wall-clock budget per model in minutes (None = steps
+            only); part of the model cache key and recorded in the report.
+        only_datasets: test datasets a table protocol keeps (None = all of them);
+            an unknown name is a ValueError when the protocol runs.
+        backend: ``local`` (everything in this process) or ``ray``: a table protocol's
+            dataset scenes, training runs and evaluations run as Ray tasks, keyed by
+            their cache keys (:mod:`benchmark.ray_jobs`).
+        address: Ray cluster address (``auto``, ``host:6379``, ``ray://host:10001``;
+            None = ``RAY_ADDRESS``, else a new local instance); only with ``ray``.
+        no_train: train nothing: rows whose model has no finished cached run get null
+            metrics with the reason ``not_trained`` (``--no-train``: score the rows whose
+            models an earlier run of the same settings trained).
+    """
+
+    def __init__(
+        self,
+        protocol: str,
+        scale: str,
+        out: str | os.PathLike,
+        data: str | os.PathLike,
+        *,
+        device: str = "cpu",
+        data_source: str = "generator",
+        seed: int = 0,
+        progress: bool = True,
+        lpips_weights: str | None = None,
+        train_steps: int | None = None,
+        train_minutes: float | None = None,
+        only_datasets: list[str] | tuple[str, ...] | None = None,
+        backend: str = "local",
+        address: str | None = None,
+        no_train: bool = False,
+    ) -> None:
+        if backend not in BACKENDS:
+            raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+        if address is not None and backend != "ray":
+            raise ValueError("--address is a Ray cluster address; pass it with --backend ray")
+        self.backend = backend
+        self.address = address
+        #: Only reuse finished cached models; rows whose model is not trained stay null.
+        self.no_train = bool(no_train)
+        #: Model keys trained by this run outside this process (Ray workers).
+        self.trained_elsewhere: set[str] = set()
+        self.protocol = protocol
+        self.settings: ScaleSettings = get_scale(scale)
+        self.scale = scale
+        self.out = Path(out)
+        self.data = Path(data)
+        self.device = device
+        self.data_source = data_source
+        self.seeds = {"data": int(seed), "train": int(seed), "eval": int(seed)}
+        self.progress = progress
+        self.lpips_weights = lpips_weights
+        if train_minutes is not None and not (
+            isinstance(train_minutes, (int, float)) and math.isfinite(train_minutes)
+        ):
+            raise ValueError(f"--train-minutes must be a positive number, got {train_minutes!r}")
+        if train_minutes is not None and train_minutes <= 0:
+            raise ValueError(f"--train-minutes must be a positive number, got {train_minutes!r}")
+        if train_steps is not None and train_steps < 1:
+            raise ValueError(f"--steps must be >= 1, got {train_steps}")
+        self.train_minutes = None if train_minutes is None else float(train_minutes)
+        if train_steps is not None:
+            self.train_steps = train_steps
+        elif self.train_minutes is not None:
+            self.train_steps = BUDGET_STEP_CAP
+        else:
+            self.train_steps = self.settings.train_steps
+        self.only_datasets = (
+            None if only_datasets is None else tuple(dict.fromkeys(str(d) for d in only_datasets))
+        )
+        self.report_dir = self.out / f"{protocol}-{scale}"
+        self.timers = {"data": 0.0, "training": 0.0, "evaluation": 0.0}
+        self.datasets: dict[tuple[str, str], DatasetInfo] = {}
+        self.models: dict[str, ModelRecord] = {}
+        self.notes: list[str] = []
+        self.t0 = time.perf_counter()
+
+    # ------------------------------------------------------------------ data
+
+    def dataset(self, preset: str, split: str) -> DatasetInfo:
+        """The split folder (generated if missing), timed under ``data``."""
+        k = (preset, split)
+        if k not in self.datasets:
+            t = time.perf_counter()
+            where = dataset_dir(self.data, self.settings.name, preset, split)
+            log(f"dataset {preset}/{split} ({self.scale}, source {self.data_source}): {where}")
+            self.datasets[k] = ensure_dataset(
+                self.data,
+                self.settings,
+                preset,
+                split,
+                source=self.data_source,
+                seed=self.seeds["data"],
+                progress=self.progress,
+                backend=self.backend,
+                address=self.address,
+            )
+            self.timers["data"] += time.perf_counter() - t
+        return self.datasets[k]
+
+    # ------------------------------------------------------------------ models
+
+    def configs(self, job: ModelJob) -> tuple[Any, Any]:
+        """``(ModelConfig, TrainConfig)`` of ``job`` at this scale, seed, device and steps."""
+        mcfg = adapter.model_config(self.scale, job.train_preset, job.variant)
+        tcfg = adapter.train_config(
+            self.scale,
+            job.train_preset,
+            job.variant,
+            self.seeds["train"],
+            self.device,
+            self.train_steps,
+        )
+        return mcfg, tcfg
+
+    @property
+    def train_budget_s(self) -> float | None:
+        """The training wall-time budget per model in seconds (None = steps only)."""
+        return None if self.train_minutes is None else self.train_minutes * 60.0
+
+    def model_key(self, job: ModelJob) -> tuple[str, dict[str, Any]]:
+        """``(cache key, key source)`` of ``job``'s run (needs its training split)."""
+        ds = self.dataset(job.train_preset, "train")
+        mcfg, tcfg = self.configs(job)
+        tdict = adapter.config_dict(tcfg)
+        key_src: dict[str, Any] = {
+            "adapter": adapter.ADAPTER_VERSION,
+            "dataset": ds.fingerprint,
+            "model": adapter.config_dict(mcfg),
+            "train": {k: v for k, v in tdict.items() if k not in _BOOKKEEPING},
+            "seed": self.seeds["train"],
+        }
+        if self.train_budget_s is not None:
+            # Only when set, so that the keys of step-limited runs stay what they were.
+            key_src["train_budget_s"] = self.train_budget_s
+        init = self.init_job(job)
+        if init is not None:  # only when set: other keys stay what they were
+            key_src["init_from"] = self.model_key(init)[0]
+        return stable_hash(key_src), key_src
+
+    def init_job(self, job: ModelJob) -> ModelJob | None:
+        """The model whose weights start ``job``'s training (svorf's ``PresetSpec.init_from``:
+        the paper starts Room-Diverse from a CLEVR-567 model), None for most models."""
+        pre = adapter.init_preset(job.train_preset)
+        return None if pre is None else ModelJob("full", pre)
+
+    def model(self, job: ModelJob, train: bool = True) -> ModelRecord | None:
+        """Train ``job`` or reuse the cached run with the same key (timed under ``training``).
+
+        With ``train=False`` only a finished cached run is returned (else None).
+        """
+        ds = self.dataset(job.train_preset, "train")
+        mcfg, tcfg = self.configs(job)
+        mdict, tdict = adapter.config_dict(mcfg), adapter.config_dict(tcfg)
+        key, key_src = self.model_key(job)
+        source = adapter.config_source(self.scale, job.train_preset, job.variant)
+        if key in self.models:
+            return self.models[key]
+        run_dir = self.out / "runs" / key
+        marker = run_dir / "benchmark_run.json"
+        done = None
+        if marker.is_file():
+            try:
+                done = json.loads(marker.read_text())
+                if done.get("key_source") != json.loads(json.dumps(key_src)):
+                    done = None
+            except (OSError, ValueError):
+                done = None
+        if done is not None:
+            fresh = key in self.trained_elsewhere  # trained by this run on Ray workers
+            log(
+                f"model {job.variant} on {job.train_preset}: "
+                + ("trained on a Ray worker, run " if fresh else "reusing run ")
+                + key
+            )
+            rec = ModelRecord(
+                key,
+                run_dir,
+                job,
+                ds,
+                mdict,
+                tdict,
+                self.seeds["train"],
+                not fresh,
+                float(done.get("train_wall_s", 0.0)),
+                done.get("summary", {}),
+                source,
+                self.train_budget_s,
+            )
+        elif not train:
+            return None
+        else:
+            init = self.init_job(job)
+            init_rec = None if init is None else self.model(init)
+            if init_rec is not None:
+                log(f"model {job.variant} on {job.train_preset}: starts from run {init_rec.key}")
+            budget = (
+                ""
+                if self.train_minutes is None
+                else f"{self.train_minutes:g} min of training wall time, up to "
+            )
+            log(
+                f"model {job.variant} on {job.train_preset}: training run {key} "
+                f"({budget}{tdict.get('steps')} steps; configs from {source})"
+            )
+            payload, wall = train_run(
+                ds.path,
+                run_dir,
+                mcfg,
+                tcfg,
+                key=key,
+                key_src=key_src,
+                job=job,
+                progress=self.progress,
+                max_wall_s=self.train_budget_s,
+                init_from=None if init_rec is None else init_rec.run_dir,
+            )
+            self.timers["training"] += wall
+            train_wall = payload["train_wall_s"]
+            summary = payload["summary"]
+            rec = ModelRecord(
+                key,
+                run_dir,
+                job,
+                ds,
+                mdict,
+                tdict,
+                self.seeds["train"],
+                False,
+                train_wall,
+                summary,
+                source,
+                self.train_budget_s,
+            )
+        self.models[key] = rec
+        return rec
+
+    # ------------------------------------------------------------------ evaluation
+
+    def lpips_available(self) -> bool:
+        """Whether LPIPS weights are found locally (part of the evaluation cache key)."""
+        return any(
+            p is not None and p.is_file() for _, p in lpips_weight_candidates(self.lpips_weights)
+        )
+
+    def _eval_dir(self, kind: str, test: DatasetInfo, extra: dict[str, Any]) -> Path:
+        ekey = stable_hash(
+            {
+                "adapter": adapter.ADAPTER_VERSION,
+                "eval": EVAL_VERSION,
+                "input_view": 0,
+                "max_scenes": self.settings.eval_scenes,
+                "lpips": self.lpips_available(),
+                "seed": self.seeds["eval"],
+                **extra,
+            }
+        )
+        return self.out / "evals" / f"{kind}-{test.fingerprint[:16]}-{ekey}"
+
+    def eval_dir(self, rec: ModelRecord, test: DatasetInfo) -> Path:
+        """The evaluation cache folder of ``rec`` on ``test``."""
+        return self._eval_dir(rec.key, test, {})
+
+    def evaluation(self, rec: ModelRecord, test: DatasetInfo) -> EvalResult:
+        """Score ``rec`` on ``test`` (cached on disk; timed under ``evaluation``)."""
+        d = self.eval_dir(rec, test)
+        cached = read_eval(d)
+        if cached is not None:
+            return cached
+        log(f"evaluating run {rec.key} ({rec.job.variant}) on {test.name}")
+        t = time.perf_counter()
+        res = evaluate_run(
+            rec.run_dir,
+            test,
+            d,
+            image_size=rec.model_config.get("image_size"),
+            device=self.device,
+            max_scenes=self.settings.eval_scenes,
+            lpips_weights=self.lpips_weights,
+            progress=self.progress,
+        )
+        self.timers["evaluation"] += time.perf_counter() - t
+        return res
+
+    def baselines(self, test: DatasetInfo, num_slots: int) -> dict[str, EvalResult]:
+        """Chance baselines on ``test`` (cached)."""
+        d = self._eval_dir("baselines", test, {"num_slots": num_slots})
+        out: dict[str, EvalResult] = {}
+        for name in BASELINES:
+            r = read_eval(d / name)
+            if r is None:
+                break
+            out[name] = r
+        else:
+            return out
+        t = time.perf_counter()
+        ds = adapter.open_dataset(test.path)
+        res = evaluate_baselines(
+            ds,
+            num_slots,
+            input_view=0,
+            max_scenes=self.settings.eval_scenes,
+            seed=self.seeds["eval"],
+            lpips_weights=self.lpips_weights,
+        )
+        self.timers["evaluation"] += time.perf_counter() - t
+        for name, r in res.items():
+            write_eval(d / name, r)
+        return res
+
+    def sample(self, rec: ModelRecord, test: DatasetInfo) -> dict[str, np.ndarray] | None:
+        """Arrays of the first test scene of an evaluation (for the qualitative figure)."""
+        p = self._eval_dir(rec.key, test, {}) / "sample.npz"
+        if not p.is_file():
+            return None
+        with np.load(p) as z:
+            return {k: z[k] for k in z.files}
+
+    # ------------------------------------------------------------------ report
+
+    def base_report(self) -> dict[str, Any]:
+        """A new report of this protocol with the run's seeds and scale settings."""
+        rep = new_report(self.protocol, self.scale, self.device)
+        rep["seeds"] = dict(self.seeds)
+        rep["scale_settings"] = {
+            "benchmark": self.settings.to_dict(),
+            "train_steps_override": self.train_steps,
+            "train_minutes": self.train_minutes,
+            "data_source": self.data_source,
+            "only_datasets": None if self.only_datasets is None else list(self.only_datasets),
+            "backend": self.backend,
+        }
+        return rep
+
+    def finish(self, report: dict[str, Any]) -> Path:
+        """Fill datasets/models/wall times, validate, write ``report.json`` and ``index.html``."""
+        from benchmark.html import write_index
+
+        report["datasets"] = [d.to_report() for d in self.datasets.values()]
+        report["models"] = [m.to_report() for m in self.models.values()]
+        for d in self.datasets.values():
+            if d.deviations:
+                self.notes.append(
+                    f"Dataset {d.name} ({d.path}) differs from the '{self.scale}' scale's "
+                    f"nominal settings: {'; '.join(d.deviations)}. "
+                    + (
+                        "It was generated so in this run."
+                        if d.generated_now
+                        else "It was found complete on disk and is used as found"
+                        + (" (checked with generators.verify)" if d.source == "generator" else "")
+                        + "; delete the folder to generate the nominal split."
+                    )
+                )
+        on_recipe = [
+            m for m in self.models.values() if m.config_source == adapter.RECIPE_CONFIG_SOURCE
+        ]
+        recipe = sorted({f"{m.job.variant} on {m.job.train_preset}" for m in on_recipe})
+        if recipe:
+            self.notes.append(
+                f"The '{self.scale}' scale trains the CLEVR-567-family models with the cpu "
+                f"recipe (svorf.train.CPU_RECIPE, docs/notes/cpu_recipe.md): {', '.join(recipe)}; "
+                "the ablation variants are applied on top of it."
+            )
+        for m in self.models.values():
+            base, _ = adapter.base_configs(self.scale, m.job.train_preset, m.job.variant)
+            for note in adapter.variant_adjustments(base, m.job.variant)[1]:
+                if note not in self.notes:
+                    self.notes.append(f"Changed for the ablation on {m.job.train_preset}: {note}")
+        if self.train_minutes is not None and self.models:
+            done = "; ".join(
+                f"{m.job.variant} on {m.job.train_preset}: {m.steps_done} steps in "
+                f"{m.train_wall_s / 60.0:.1f} min (stopped by {m.budget_report()['stopped_by']})"
+                for m in self.models.values()
+            )
+            self.notes.append(
+                f"Training budget: {self.train_minutes:g} min of training wall time per model "
+                f"(evaluation and checkpoint writes excluded), up to {self.train_steps} steps. "
+                f"{done}. Steps done depend on the machine's speed and load, so a budgeted "
+                "run is not reproducible step for step."
+            )
+        if self.data_source == "synthetic":
+            self.notes.append(
+                "Datasets are svorf.synthetic analytic sphere scenes (a stand-in for the "
+                "Blender presets, used for tests); numbers are not comparable to the paper."
+            )
+        report["notes"] = list(dict.fromkeys(report.get("notes", []) + self.notes))
+        report["wall_time_s"] = {
+            **{k: round(v, 3) for k, v in self.timers.items()},
+            "total": round(time.perf_counter() - self.t0, 3),
+        }
+        path = self.report_dir / "report.json"
+        write_report(path, report)
+        write_index(self.report_dir, report)
+        return path  # `benchmark run` prints it (and index.html) once, at the end
