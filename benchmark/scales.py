@@ -92,6 +92,11 @@ SCALES: dict[str, ScaleSettings] = {
                 "smoke checks the plumbing only: a few training steps on 4 scenes cannot "
                 "decompose a scene, so its metrics are at chance level by design."
             ),
+            (
+                "smoke renders its ground truth with 1 Cycles sample per pixel and no "
+                "denoiser (32x32), so the ground-truth images look speckled: that is the "
+                "renderer's noise at 1 sample, not a broken dataset."
+            ),
         ),
     ),
     "cpu": ScaleSettings(
