@@ -33,7 +33,7 @@ from pathlib import Path
 import scenefmt
 from generators.presets import PRESETS, Preset, get_preset, scene_preset
 from generators.spec import RenderSettings
-from generators.worker import close_worker_session, init_worker, render_one
+from generators.worker import close_worker_session, init_worker, render_manip_one, render_one
 from generators.writer import manifest
 
 MAX_SCENES = 10_000  # sc%04d file names
@@ -42,7 +42,9 @@ MAX_SCENES = 10_000  # sc%04d file names
 BACKENDS = ("local", "ray")
 
 #: Manifest keys that identify a dataset: a rerun into the same folder must match them.
-IDENTITY_KEYS = ("preset", "split", "seed", "resolution", "n_views", "render", "preset_config")
+IDENTITY_KEYS = (
+    "preset", "split", "seed", "resolution", "n_views", "render", "preset_config", "manip",
+)  # fmt: skip
 
 
 def cpu_cores() -> int:
@@ -59,7 +61,9 @@ class GenerateConfig:
 
     Attributes:
         preset: preset name (``generators.presets.PRESETS``).
-        split: ``train`` / ``test``; default the preset's first split.
+        split: ``train`` / ``test``; default the preset's first split. ``manip``: the
+            manipulation split (``generators.manip``: per scene a moved and a
+            background-changed variant in uORF's manipulation layout; needs n >= 2).
         n: number of scenes (default: the preset's split size). Scene i does not
             depend on n, so a larger n extends a dataset.
         out: split folder (default ``data/{preset}/{split}``).
@@ -143,6 +147,21 @@ class GenerateConfig:
             )
         if self.address is not None and self.backend != "ray":
             raise ValueError("--address is a Ray cluster address; pass it with --backend ray")
+        if self.split == scenefmt.MANIP_SPLIT:
+            if self.n_scenes() < 2:
+                raise ValueError(
+                    f"--n must be >= 2 for --split {scenefmt.MANIP_SPLIT} (the background of a "
+                    f"scene comes from another scene of the split), got {self.n_scenes()}"
+                )
+            if self.backend != "local":
+                raise ValueError(
+                    f"--split {scenefmt.MANIP_SPLIT} renders with --backend local only "
+                    "(use --shard i/n to split it over machines)"
+                )
+
+    def is_manip(self) -> bool:
+        """Whether this is the manipulation split."""
+        return self.split_name() == scenefmt.MANIP_SPLIT
 
     # ---------------------------------------------------------------- resolved values
 
@@ -285,7 +304,10 @@ def _check_existing_manifest(path: Path, new: dict) -> None:
     diff = [k for k in IDENTITY_KEYS if old.get(k) != new.get(k)]
     if diff:
         shown = ", ".join(f"{k} {old.get(k)!r} vs {new.get(k)!r}" for k in diff
-                          if k not in ("render", "preset_config"))  # fmt: skip
+                          if k not in ("render", "preset_config", "manip"))  # fmt: skip
+        if "manip" in diff:  # the donors are drawn from the split's scene count
+            n_diff = f"n_scenes {old.get('n_scenes')!r} vs {new.get('n_scenes')!r}"
+            shown = ", ".join(x for x in (shown, n_diff) if x)
         raise ValueError(
             f"--out: {path.parent} holds another dataset (different {', '.join(diff)}"
             f"{': ' + shown if shown else ''}); pass another --out or delete that folder"
@@ -302,7 +324,9 @@ def _remove_stale_temp_files(layout: scenefmt.SplitLayout, indices: set[int]) ->
                 continue
             target = f.name[1:].split(".")[0]  # ".00004_sc0001_az00_RT.txt.ab12.tmp" -> stem
             try:
-                if target.startswith("sc"):
+                if target.endswith("_movement"):  # ".003_movement.txt.ab12.tmp"
+                    scene = int(target.split("_")[0])
+                elif target.startswith("sc"):
                     scene = int(target[2:])
                 else:
                     scene = int(target.split("_sc")[1][:4])
@@ -362,8 +386,21 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
     split, n, out = cfg.split_name(), cfg.n_scenes(), cfg.out_dir()
     render = cfg.render_settings()
     _check_writable(out)
-    layout = scenefmt.SplitLayout(out, n_views=preset.camera.n_views)
-    new_manifest = manifest(preset, split, n, cfg.resolution, cfg.seed, render, "in_progress")
+    manip = cfg.is_manip()
+    if manip:
+        from generators.manip_writer import manip_manifest
+
+        layout: scenefmt.SplitLayout = scenefmt.ManipLayout(out, n_views=preset.camera.n_views)
+
+        def make_manifest(status: str) -> dict:
+            return manip_manifest(preset, n, cfg.resolution, cfg.seed, render, status)
+    else:
+        layout = scenefmt.SplitLayout(out, n_views=preset.camera.n_views)
+
+        def make_manifest(status: str) -> dict:
+            return manifest(preset, split, n, cfg.resolution, cfg.seed, render, status)
+
+    new_manifest = make_manifest("in_progress")
     _check_existing_manifest(layout.manifest, new_manifest)
 
     indices = cfg.indices()
@@ -441,8 +478,11 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
                 initializer=init_worker,
                 initargs=(cfg.n_threads(),),
             ) as pool:
+                dest = str(out.absolute())
                 futures = [
-                    pool.submit(render_one, preset, split, i, cfg.seed, render, str(out.absolute()))
+                    pool.submit(render_manip_one, preset, i, n, cfg.seed, render, dest)
+                    if manip
+                    else pool.submit(render_one, preset, split, i, cfg.seed, render, dest)
                     for i in to_render[start : start + batch]
                 ]
                 try:
@@ -460,10 +500,7 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
 
     complete = all(scenefmt.is_scene_complete(layout, i) for i in range(n))
     if complete:
-        scenefmt.atomic_write_json(
-            layout.manifest,
-            manifest(preset, split, n, cfg.resolution, cfg.seed, render, "complete"),
-        )
+        scenefmt.atomic_write_json(layout.manifest, make_manifest("complete"))
     return GenerateSummary(
         out=out,
         preset=preset.name,
@@ -492,5 +529,6 @@ __all__ = [
     "cpu_cores",
     "generate_dataset",
     "init_worker",
+    "render_manip_one",
     "render_one",
 ]

@@ -15,6 +15,7 @@ from typing import Any
 
 from scenefmt.clevr import CLEVR_COLORS, CLEVR_SIZES  # re-exported: presets use both
 from scenefmt.cli_util import choose
+from scenefmt.layout import MANIP_SPLIT
 
 CLEVR_SHAPES: tuple[str, ...] = ("cube", "sphere", "cylinder")
 
@@ -24,7 +25,9 @@ MATERIALS: dict[str, dict[str, float]] = {
     "rubber": {"roughness": 0.9, "specular_ior_level": 0.25, "metallic": 0.0},
 }
 
-SPLIT_CODES: dict[str, int] = {"train": 0, "test": 1}
+#: Split -> code in the scene seed. ``manip`` is the manipulation split (moved and
+#: background-changed variants, ``generators.manip``): scenes of their own, never a test scene.
+SPLIT_CODES: dict[str, int] = {"train": 0, "test": 1, MANIP_SPLIT: 2}
 
 
 @dataclass(frozen=True)
@@ -234,13 +237,18 @@ class Preset:
     room: RoomRules | None = None
 
     def split_names(self) -> tuple[str, ...]:
-        return tuple(s for s, _ in self.splits)
+        """The preset's splits, then ``manip`` for presets that sample their own scenes."""
+        names = tuple(s for s, _ in self.splits)
+        return names if self.scene_source else (*names, MANIP_SPLIT)
 
     def split_size(self, split: str) -> int:
-        """Default scene count of ``split``; ValueError if the preset has no such split."""
+        """Default scene count of ``split`` (``manip``: the last split's, uORF's 500 test
+        scenes); ValueError if the preset has no such split."""
         for s, n in self.splits:
             if s == split:
                 return n
+        if split == MANIP_SPLIT and not self.scene_source:
+            return self.splits[-1][1]
         raise ValueError(
             f"split: preset {self.name!r} has no split {split!r} (it has: {', '.join(self.split_names())})"
         )

@@ -13,7 +13,8 @@ second-lowest level covers exactly the equally resized id-0 pixels other than th
 sentinel's); depth float32 [R, R],
 finite and positive wherever geometry was hit (every pixel here: the ground
 is hit everywhere; objects always), never NaN; ``_RT.txt`` / ``_azi_rot.txt`` equal to
-the JSON camera; no stray ``*.png`` that the uORF loader would take for a view.
+the JSON camera; no stray ``*.png`` that the uORF loader would take for a view. A
+manipulation split (``"split": "manip"``) also gets ``manip_verify.manip_scene_problems``.
 """
 
 from __future__ import annotations
@@ -24,10 +25,13 @@ import numpy as np
 from PIL import Image
 
 from generators import geometry
+from generators.manip_verify import manip_scene_problems
 from scenefmt import (
+    MANIP_SPLIT,
     MASK_BG_LEVEL,
     MASK_SENTINEL_LEVEL,
     MIN_UORF_MASK_SIZE,
+    ManipLayout,
     SplitLayout,
     read_depth_exr,
     read_instances,
@@ -41,7 +45,7 @@ from scenefmt import (
 #: uORF loader suffixes that are not views (``data/multiscenes_dataset.py``).
 UORF_NON_VIEW_SUFFIXES = (
     "_mask.png", "_mask_for_moving.png", "_mask_for_bg.png", "_mask_for_providing_bg.png",
-    "_moved.png", "_changed.png", "_changed_mask.png", "_fg.png", "_bg_mask.png",
+    "_moved.png", "_changed.png", "_providing_bg.png", "_changed_mask.png", "_fg.png", "_bg_mask.png",
 )  # fmt: skip
 
 
@@ -192,7 +196,8 @@ def verify_split(root: str | Path, *, max_problems: int = 200) -> list[str]:
         n, n_views, res = int(mf["n_scenes"]), int(mf["n_views"]), int(mf["resolution"])
     except (OSError, ValueError, KeyError, TypeError) as e:
         return [f"{mpath}: unreadable or incomplete ({e})"]
-    layout = SplitLayout(root, n_views=n_views)
+    manip = mf.get("split") == MANIP_SPLIT
+    layout = (ManipLayout if manip else SplitLayout)(root, n_views=n_views)
     problems: list[str] = []
     for s in range(n):
         missing = [p for p in layout.scene_files(s) if not p.is_file()]
@@ -217,6 +222,9 @@ def verify_split(root: str | Path, *, max_problems: int = 200) -> list[str]:
             continue
         for v in range(n_views):
             problems += _view_problems(layout, meta, s, v, res)
+        if manip:
+            assert isinstance(layout, ManipLayout)
+            problems += manip_scene_problems(layout, meta, s, res)
         if len(problems) >= max_problems:
             return problems[:max_problems] + ["... (stopped)"]
     known = {layout.rgb(s, v).name for s in range(n) for v in range(n_views)}

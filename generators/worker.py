@@ -18,7 +18,7 @@ import scenefmt
 from generators.presets import Preset
 from generators.spec import RenderSettings
 
-__all__ = ["close_worker_session", "init_worker", "render_one"]
+__all__ = ["close_worker_session", "init_worker", "render_manip_one", "render_one"]
 
 _SESSION = None
 _THREADS = 1
@@ -76,3 +76,45 @@ def render_one(
         "render_s": sum(v.render_s for v in passes),
         "scene_s": time.perf_counter() - t0,
     }
+
+
+def render_manip_one(
+    preset: Preset, index: int, n: int, seed: int, render: RenderSettings, out: str
+) -> dict[str, float]:
+    """Sample, edit, render and write scene ``index`` of the manipulation split (the pool
+    task of ``generate --split manip``): the ordinary views and every variant of
+    :mod:`generators.manip`. The changed variant is not rendered when the donor's
+    background equals the scene's own (it would be the ordinary views again).
+
+    Returns:
+        ``{"index", "render_s" (Cycles time, all views of all variants), "scene_s"}``.
+    """
+    global _SESSION
+    from generators.blender_backend import BlenderSession
+    from generators.imageops import linear_to_srgb8
+    from generators.manip import make_manip_scene, variant_spec
+    from generators.manip_writer import write_manip_scene
+    from generators.writer import ViewImages
+
+    t0 = time.perf_counter()
+    if _SESSION is None:
+        _SESSION = BlenderSession(threads=_THREADS)
+        atexit.register(_SESSION.close)
+    spec, edit = make_manip_scene(preset, index, n, seed, render)
+    render_s = 0.0
+
+    def draw(s) -> list[ViewImages]:
+        nonlocal render_s
+        passes = _SESSION.render_scene(s)
+        render_s += sum(v.render_s for v in passes)
+        return [ViewImages(linear_to_srgb8(v.rgb_linear), v.ids, v.depth_z) for v in passes]
+
+    views = draw(spec)
+    variants = {
+        "moved": draw(variant_spec(spec, edit, "moved")),
+        "changed": draw(variant_spec(spec, edit, "changed")) if edit.background.differs else views,
+        "providing_bg": draw(variant_spec(spec, edit, "providing_bg")),
+    }
+    layout = scenefmt.ManipLayout(out, n_views=preset.camera.n_views)
+    write_manip_scene(layout, spec, edit, views, variants)
+    return {"index": index, "render_s": render_s, "scene_s": time.perf_counter() - t0}

@@ -146,13 +146,37 @@ def write_scene(
     Returns:
         The scene JSON written.
     """
+    write_view_files(layout, spec, views, grayscale=grayscale_preset is not None)
+    scene = spec.index
+    d = spec.to_json([layout.rgb(scene, v).name for v in range(spec.n_views)])
+    if grayscale_preset:
+        d = grayscale_json(d, grayscale_preset, "rendered")
+    scenefmt.atomic_write_json(layout.scene_json(scene), d)
+    return d
+
+
+def write_view_files(
+    layout: scenefmt.SplitLayout,
+    spec: SceneSpec,
+    views: list[ViewImages],
+    *,
+    grayscale: bool = False,
+) -> None:
+    """Write the ordinary per-view files of scene ``spec.index`` (not its JSON).
+
+    Args:
+        layout: the split folder.
+        spec: the scene (its cameras go to ``_RT.txt`` / ``_azi_rot.txt``).
+        views: one :class:`ViewImages` per view, in view order.
+        grayscale: convert RGB with Rec.601 luma.
+    """
     if len(views) != spec.n_views or spec.n_views != layout.n_views:
         raise ValueError(
             f"views: expected {layout.n_views} views, got {len(views)} (spec has {spec.n_views})"
         )
     scene = spec.index
     for v, (img, vs) in enumerate(zip(views, spec.views, strict=True)):
-        rgb = grayscale_rec601(img.rgb) if grayscale_preset else img.rgb
+        rgb = grayscale_rec601(img.rgb) if grayscale else img.rgb
         scenefmt.write_rgb(layout.rgb(scene, v), rgb)
         scenefmt.write_matrix_txt(layout.rt(scene, v), vs.c2w())
         scenefmt.write_matrix_txt(
@@ -161,11 +185,6 @@ def write_scene(
         scenefmt.write_mask(layout.mask(scene, v), scenefmt.uorf_mask_from_instances(img.ids))
         scenefmt.write_instances(layout.instances(scene, v), img.ids)
         scenefmt.write_depth_exr(layout.depth(scene, v), img.depth_z)
-    d = spec.to_json([layout.rgb(scene, v).name for v in range(spec.n_views)])
-    if grayscale_preset:
-        d = grayscale_json(d, grayscale_preset, "rendered")
-    scenefmt.atomic_write_json(layout.scene_json(scene), d)
-    return d
 
 
 def convert_scene_grayscale(

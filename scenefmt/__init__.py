@@ -16,7 +16,8 @@ Layout of one split folder (e.g. ``data/clevr567/train/``)::
     sc{scene:04d}.json                               full scene record (written last)
     manifest.json                                    split-level metadata
 
-``idx`` is the global view index ``scene * n_views + view``.
+``idx`` is the global view index ``scene * n_views + view``. A manipulation split
+(``generate --split manip``) adds uORF's manipulation files: see :class:`ManipLayout`.
 """
 
 from scenefmt.io import (
@@ -28,41 +29,56 @@ from scenefmt.io import (
     read_instances,
     read_json,
     read_matrix_txt,
+    read_movement_txt,
     read_rgb,
     write_depth_exr,
     write_instances,
     write_mask,
     write_matrix_txt,
+    write_movement_txt,
     write_rgb,
 )
 from scenefmt.layout import (
     FORMAT_VERSION,
+    MANIP_MASK_OFF,
+    MANIP_MASK_ON,
+    MANIP_SPLIT,
+    MANIP_VARIANTS,
     MASK_BG_LEVEL,
     MASK_SENTINEL_LEVEL,
     MIN_UORF_MASK_SIZE,
+    ManipLayout,
     SplitLayout,
     instances_from_uorf_mask,
     is_scene_complete,
+    manip_mask,
     sentinel_size,
     uorf_mask_from_instances,
 )
 
 __all__ = [
     "FORMAT_VERSION",
+    "MANIP_MASK_OFF",
+    "MANIP_MASK_ON",
+    "MANIP_SPLIT",
+    "MANIP_VARIANTS",
     "MASK_BG_LEVEL",
     "MASK_SENTINEL_LEVEL",
     "MIN_UORF_MASK_SIZE",
+    "ManipLayout",
     "SplitLayout",
     "atomic_write_bytes",
     "atomic_write_json",
     "default_file_mode",
     "instances_from_uorf_mask",
     "is_scene_complete",
+    "manip_mask",
     "mkstemp_beside",
     "read_depth_exr",
     "read_instances",
     "read_json",
     "read_matrix_txt",
+    "read_movement_txt",
     "read_rgb",
     "sentinel_size",
     "uorf_mask_from_instances",
@@ -70,5 +86,6 @@ __all__ = [
     "write_instances",
     "write_mask",
     "write_matrix_txt",
+    "write_movement_txt",
     "write_rgb",
 ]

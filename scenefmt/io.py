@@ -222,3 +222,17 @@ def write_matrix_txt(path: str | os.PathLike, mat: np.ndarray) -> None:
 
 def read_matrix_txt(path: str | os.PathLike) -> np.ndarray:
     return np.loadtxt(path, dtype=np.float64)
+
+
+def write_movement_txt(path: str | os.PathLike, dx: float, dy: float) -> None:
+    """uORF's ``{scene:03d}_movement.txt``: x then y (world units), one per line."""
+    for name, v in (("dx", dx), ("dy", dy)):
+        if not np.isfinite(v):
+            raise ValueError(f"{name} must be finite, got {v}")
+    atomic_write_bytes(path, f"{float(dx):.10f}\n{float(dy):.10f}\n".encode())
+
+
+def read_movement_txt(path: str | os.PathLike) -> tuple[float, float]:
+    """``(dx, dy)`` of a movement file, read line by line as uORF's loader does."""
+    with open(path) as f:
+        return float(f.readline()), float(f.readline())

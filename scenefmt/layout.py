@@ -113,6 +113,113 @@ class SplitLayout:
         return int(m["idx"]), int(m["scene"]), int(m["view"])
 
 
+#: The manipulation split (``generate --split manip``) and its per-view variants.
+MANIP_SPLIT = "manip"
+#: Variants of a manipulation scene that are rendered (each has ids and depth).
+MANIP_VARIANTS = ("moved", "changed", "providing_bg")
+#: Binary manipulation masks (``_mask_for_moving`` etc.): uORF's manipulation loader takes
+#: the *lowest* grey level as the background, so "not selected" is 0 and "selected" 255.
+MANIP_MASK_OFF = 0
+MANIP_MASK_ON = 255
+
+
+@dataclass(frozen=True)
+class ManipLayout(SplitLayout):
+    """Paths of a manipulation split: the ordinary files plus, per view, a moved and a
+    background-changed variant in uORF's manipulation layout (KovenYu/uORF
+    ``data/multiscenes_manip_dataset.py``)::
+
+        {stem}_moved.png                  one object translated by the scene's movement
+        {stem}_mask_for_moving.png        that object in the ordinary view (binary)
+        {scene:03d}_movement.txt          x and y of the translation, one per line
+        {stem}_changed.png                the scene with a donor scene's background
+        {stem}_providing_bg.png           the donor scene seen from this camera
+        {stem}_mask_for_bg.png            background of the changed view (binary)
+        {stem}_mask_for_providing_bg.png  background of the providing view (binary)
+        instances/{stem}_{variant}.png    ids of each variant (moved, changed, providing_bg)
+        depth/{stem}_{variant}.exr        planar depth of each variant
+    """
+
+    def moved(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}_moved.png"
+
+    def mask_for_moving(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}_mask_for_moving.png"
+
+    def changed(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}_changed.png"
+
+    def providing_bg(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}_providing_bg.png"
+
+    def mask_for_bg(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}_mask_for_bg.png"
+
+    def mask_for_providing_bg(self, scene: int, view: int) -> Path:
+        return self.root / f"{self.stem(scene, view)}_mask_for_providing_bg.png"
+
+    def movement(self, scene: int) -> Path:
+        """``{scene:03d}_movement.txt`` (uORF's name: at least three digits)."""
+        if not 0 <= scene <= 9999:
+            raise ValueError(f"scene must be in [0, 9999], got {scene}")
+        return self.root / f"{scene:03d}_movement.txt"
+
+    def variant_rgb(self, scene: int, view: int, variant: str) -> Path:
+        """The RGB file of ``variant`` (one of :data:`MANIP_VARIANTS`)."""
+        return getattr(self, _check_variant(variant))(scene, view)
+
+    def variant_instances(self, scene: int, view: int, variant: str) -> Path:
+        v = _check_variant(variant)
+        return self.root / "instances" / f"{self.stem(scene, view)}_{v}.png"
+
+    def variant_depth(self, scene: int, view: int, variant: str) -> Path:
+        v = _check_variant(variant)
+        return self.root / "depth" / f"{self.stem(scene, view)}_{v}.exr"
+
+    def manip_view_files(self, scene: int, view: int) -> list[Path]:
+        """The manipulation files of one view (not the ordinary ones)."""
+        out = [
+            self.mask_for_moving(scene, view),
+            self.mask_for_bg(scene, view),
+            self.mask_for_providing_bg(scene, view),
+        ]
+        for v in MANIP_VARIANTS:
+            out += [
+                self.variant_rgb(scene, view, v),
+                self.variant_instances(scene, view, v),
+                self.variant_depth(scene, view, v),
+            ]
+        return out
+
+    def view_files(self, scene: int, view: int) -> list[Path]:
+        return super().view_files(scene, view) + self.manip_view_files(scene, view)
+
+    def scene_files(self, scene: int) -> list[Path]:
+        """Every file of a scene; the movement file before the scene JSON (last)."""
+        files = [p for v in range(self.n_views) for p in self.view_files(scene, v)]
+        return files + [self.movement(scene), self.scene_json(scene)]
+
+
+def _check_variant(variant: str) -> str:
+    if variant not in MANIP_VARIANTS:
+        raise ValueError(f"variant must be one of {MANIP_VARIANTS}, got {variant!r}")
+    return variant
+
+
+def manip_mask(selected: np.ndarray) -> np.ndarray:
+    """A binary manipulation mask: uint8 [H, W], ``MANIP_MASK_ON`` where ``selected``.
+
+    uORF's manipulation loader reads these masks (``_mask_for_moving``, ``_mask_for_bg``,
+    ``_mask_for_providing_bg``) after ``convert('L')`` and a NEAREST resize and takes the
+    lowest grey level as "not selected"; with only two levels 0 / 255 that holds at any
+    size, and a mask with nothing selected is a single level (uORF then selects nothing).
+    """
+    selected = np.asarray(selected)
+    if selected.ndim != 2:
+        raise ValueError(f"selected must be [H, W], got shape {selected.shape}")
+    return np.where(selected.astype(bool), MANIP_MASK_ON, MANIP_MASK_OFF).astype(np.uint8)
+
+
 def is_scene_complete(layout: SplitLayout, scene: int) -> bool:
     """True when the scene JSON and every per-view file exist (the writer's rule).
 
