@@ -9,7 +9,8 @@ benchmark needs from svorf:
   plus :func:`config_dict` to store them as JSON; both start from
   :func:`base_configs`, the one place that picks svorf's configs per scale
   (the ``cpu`` scale trains the CLEVR-567 family with the cpu recipe,
-  ``svorf.recipe.recipe_configs``, docs/notes/cpu_recipe.md);
+  docs/notes/cpu_recipe.md), and :func:`config_key` / :func:`learning_fields`, svorf's
+  name for what a model learns (the same key ``svorf config`` prints);
 - training: :func:`train` (resumable, into a run folder, optionally with a
   wall-clock budget) and :func:`load_model`;
 - evaluation: :func:`open_dataset`, :func:`ground_truth`, :func:`predict_scene`
@@ -47,12 +48,14 @@ __all__ = [
     "compose",
     "compose_density_weighted",
     "config_dict",
+    "config_key",
     "config_source",
     "connectivity_loss",
     "dataset_fingerprint",
     "diverging_run",
     "ground_truth",
     "init_preset",
+    "learning_fields",
     "load_model",
     "model_config",
     "num_slots",
@@ -220,6 +223,18 @@ def train_config(
         changes["steps"] = int(steps)
     _, tcfg = base_configs(scale, train_preset, variant)
     return dataclasses.replace(tcfg, **changes)
+
+
+def config_key(model_cfg: Any, train_cfg: Any) -> str:
+    """svorf's config key of a model (``svorf.train_config.config_key``): what ``svorf config``
+    prints for the same configs; device and logging settings do not change it."""
+    return _svorf_train().config_key(model_cfg, train_cfg)
+
+
+def learning_fields(train_cfg: Any) -> dict[str, Any]:
+    """The TrainConfig fields that change what a run learns, as a dict (svorf's
+    ``learning_fields``: every field but device, logging, checkpoint and evaluation cadence)."""
+    return _svorf_train().learning_fields(train_cfg)
 
 
 def config_dict(cfg: Any) -> dict[str, Any]:

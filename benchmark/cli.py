@@ -6,7 +6,7 @@ Usage::
                        [--device cpu|cuda|auto] [--data-source generator|synthetic]
                        [--seed N] [--steps N] [--train-minutes M] [--datasets A[,B]]
                        [--lpips-weights FILE] [--no-progress]
-                       [--backend local|ray [--address ADDR]]
+                       [--backend local|ray [--address ADDR]] [--show-config]
     benchmark leaderboard DIR          # merge DIR/**/report.json -> DIR/leaderboard.json
     benchmark html DIR                 # (re)write DIR/index.html from DIR/report.json
     benchmark screenshot DIR [--png F] # render DIR/index.html with headless Chromium
@@ -20,6 +20,10 @@ datasets to ``<data>/<scale>/<preset>/<split>``. Rerunning skips finished rows. 
 end it prints the summary: each verdict once, the dataset folder it used (and which
 splits it generated), then the paths of ``report.json`` and ``index.html``.
 
+``run NAME --show-config`` (table protocols) trains nothing: it prints, for every model
+the protocol would train, svorf's config key and the ``svorf train`` command line that
+trains the same model (``svorf config`` prints the same key for it).
+
 Every error is one line ``benchmark: error: ...`` on stderr (what was wrong and how to
 fix it; "did you mean ...?" for a misspelt protocol, scale or dataset); status 2.
 """
@@ -31,13 +35,17 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from benchmark.scales import SCALES
 from benchmark.schema import PROTOCOLS
 from scenefmt.cli_util import USAGE, OneLineParser, error_line, fail
 
-__all__ = ["main", "summary_lines"]
+if TYPE_CHECKING:
+    from benchmark.context import Context
+    from benchmark.jobs import ModelJob
+
+__all__ = ["config_lines", "main", "summary_lines"]
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -113,6 +121,13 @@ def _parser() -> argparse.ArgumentParser:
         "RAY_ADDRESS, else a local Ray instance",
     )
 
+    r.add_argument(
+        "--show-config",
+        action="store_true",
+        help="table protocols: train nothing; print each model's config key and the "
+        "`svorf train` command that trains the same model (`svorf config` prints the key)",
+    )
+
     lb = sub.add_parser("leaderboard", help="merge reports into DIR/leaderboard.json and print it")
     lb.add_argument("dir", help="a --out folder of `benchmark run` (searched for report.json)")
 
@@ -168,6 +183,7 @@ def _run(args: argparse.Namespace) -> int:
         ("--train-minutes", args.train_minutes),
         ("--backend", None if args.backend == "local" else args.backend),
         ("--address", args.address),
+        ("--show-config", True if args.show_config else None),
     )
     for flag, value in table_only:
         if value is not None and args.name not in TABLE_PROTOCOLS:
@@ -192,10 +208,45 @@ def _run(args: argparse.Namespace) -> int:
         address=args.address,
         no_train=args.no_train,
     )
+    if args.show_config:
+        from benchmark.protocols.tables import MEASURED_ROWS
+        from benchmark.runner import planned_models
+
+        jobs = planned_models(ctx, MEASURED_ROWS[args.name]())
+        print("\n".join(config_lines(ctx, jobs)))
+        return 0
     path = Path(fn(ctx))
     report = json.loads(path.read_text())
     print("\n".join(summary_lines(report, path)))
     return 1 if any(r.get("failed") for r in report["rows"]) else 0
+
+
+def config_lines(ctx: Context, jobs: list[ModelJob]) -> list[str]:
+    """What ``benchmark run NAME --show-config`` prints: per model its config key (svorf's
+    ``config_key``, as ``svorf config`` prints it), where its configs come from, its size
+    and schedule, and the ``svorf train`` command that trains the same model."""
+    from benchmark import adapter
+
+    models = f"{len(jobs)} model{'s' if len(jobs) != 1 else ''}"
+    lines = [f"{ctx.protocol} ({ctx.scale}): {models}; nothing trained (--show-config)"]
+    for job in jobs:
+        mcfg, tcfg = ctx.configs(job)
+        source = adapter.config_source(ctx.scale, job.train_preset, job.variant)
+        lines.append(
+            f"  {job.variant} on {job.train_preset}: config key {ctx.config_key(job)} "
+            f"({source}; K={mcfg.num_slots}, image {mcfg.image_size}, {tcfg.steps} steps x "
+            f"{tcfg.batch_scenes} scenes x {tcfg.rays_per_scene} rays, seed {tcfg.seed})"
+        )
+        cmd = ctx.svorf_command(job)
+        if cmd is not None:
+            lines.append(f"    same model: {cmd}")
+        else:
+            changes = ", ".join(f"{k}={v!r}" for k, v in adapter.VARIANTS[job.variant].items())
+            lines.append(
+                f"    no svorf train preset gives this model (ablation variant {job.variant}: "
+                f"{changes})"
+            )
+    return lines
 
 
 def summary_lines(report: dict[str, Any], path: str | os.PathLike) -> list[str]:

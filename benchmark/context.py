@@ -11,8 +11,9 @@ where, and writes the report's common parts (:meth:`Context.base_report`,
 Caching and resume (all writes atomic):
 
 - models: ``<out>/runs/<key>/`` with ``key = hash(dataset fingerprint, model config,
-  train config without bookkeeping fields, seed, adapter version[, training wall-time
-  budget])``. svorf writes its checkpoints there and resumes an interrupted run (a
+  train config without bookkeeping fields (``adapter.learning_fields``), seed, adapter
+  version[, training wall-time budget])``: svorf's config key (``svorf config``) plus the
+  data, so :meth:`Context.config_key` names the same model as ``svorf train``. svorf writes its checkpoints there and resumes an interrupted run (a
   budgeted run counts the time already trained); ``benchmark_run.json`` marks a
   finished one, which any later protocol with the same key reuses.
 - evaluations: ``<out>/evals/<model key>-<test fingerprint>-<eval key>/result.json``
@@ -27,7 +28,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,9 +44,6 @@ from benchmark.report import new_report, stable_hash, write_report
 from benchmark.scales import ScaleSettings, get_scale
 
 __all__ = ["BACKENDS", "BUDGET_STEP_CAP", "Context", "ModelRecord"]
-
-#: TrainConfig fields that do not change what is learned (left out of the cache key).
-_BOOKKEEPING = ("device", "log_every", "ckpt_every", "eval_every", "eval_scenes")
 
 #: Step limit of a run with a wall-clock budget (``--train-minutes``) and no ``--steps``:
 #: the budget is what stops it (as in ``python -m svorf.recipe train-eval --minutes``).
@@ -254,12 +252,11 @@ class Context:
         """``(cache key, key source)`` of ``job``'s run (needs its training split)."""
         ds = self.dataset(job.train_preset, "train")
         mcfg, tcfg = self.configs(job)
-        tdict = adapter.config_dict(tcfg)
         key_src: dict[str, Any] = {
             "adapter": adapter.ADAPTER_VERSION,
             "dataset": ds.fingerprint,
             "model": adapter.config_dict(mcfg),
-            "train": {k: v for k, v in tdict.items() if k not in _BOOKKEEPING},
+            "train": adapter.learning_fields(tcfg),
             "seed": self.seeds["train"],
         }
         if self.train_budget_s is not None:
@@ -269,6 +266,36 @@ class Context:
         if init is not None:  # only when set: other keys stay what they were
             key_src["init_from"] = self.model_key(init)[0]
         return stable_hash(key_src), key_src
+
+    def config_key(self, job: ModelJob) -> str:
+        """svorf's config key of ``job`` (``svorf.train_config.config_key``): what ``svorf
+        config`` prints for the same model and schedule. Needs no data (the run key adds
+        the dataset's fingerprint)."""
+        mcfg, tcfg = self.configs(job)
+        return adapter.config_key(mcfg, tcfg)
+
+    def svorf_command(self, job: ModelJob) -> str | None:
+        """The ``svorf train`` command line that trains the same model as ``job`` (the same
+        :meth:`config_key`), or None where svorf has no preset for it (ablation variants)."""
+        preset = adapter.svorf_preset(job.train_preset, job.variant)
+        mcfg, tcfg = adapter.base_configs(self.scale, job.train_preset, job.variant)
+        changes: dict[str, Any] = {"seed": self.seeds["train"]}
+        if self.train_steps is not None:
+            changes["steps"] = int(self.train_steps)
+        if adapter.config_key(mcfg, replace(tcfg, **changes)) != self.config_key(job):
+            return None
+        data = dataset_dir(self.data, self.settings.name, job.train_preset, "train")
+        words = ["svorf train", f"--scale {self.scale}", f"--preset {preset}", f"--data {data}"]
+        if self.train_steps is not None:
+            words.append(f"--steps {self.train_steps}")
+        if self.seeds["train"]:
+            words.append(f"--seed {self.seeds['train']}")
+        if self.train_minutes is not None:
+            words.append(f"--minutes {self.train_minutes:g}")
+        init = self.init_job(job)
+        if init is not None:
+            words.append(f"--init-from <run of {init.variant} on {init.train_preset}>")
+        return " ".join([*words, "--out RUN"])
 
     def init_job(self, job: ModelJob) -> ModelJob | None:
         """The model whose weights start ``job``'s training (svorf's ``PresetSpec.init_from``:
@@ -490,7 +517,7 @@ class Context:
         if recipe:
             self.notes.append(
                 f"The '{self.scale}' scale trains the CLEVR-567-family models with the cpu "
-                f"recipe (svorf.train.CPU_RECIPE, docs/notes/cpu_recipe.md): {', '.join(recipe)}; "
+                f"recipe (svorf.registry, docs/notes/cpu_recipe.md): {', '.join(recipe)}; "
                 "the ablation variants are applied on top of it."
             )
         for m in self.models.values():

@@ -51,6 +51,7 @@ __all__ = [
     "ModelJob",
     "ModelRecord",
     "evaluate_run",
+    "planned_models",
     "read_eval",
     "row_id",
     "row_metrics",
@@ -85,6 +86,28 @@ def _filter_datasets(
         )
     keep = set(ctx.only_datasets)
     return [s for s in measured if s.dataset in keep], keep, [d for d in known if d not in keep]
+
+
+def planned_models(ctx: Context, measured: list[MeasuredRow]) -> list[ModelJob]:
+    """The models a table protocol would train for ``measured`` under ``ctx`` (after
+    ``--datasets``), each once, a model's initialising model first; reads no data.
+
+    Raises:
+        ValueError: as :func:`run_table_protocol` for an unknown ``--datasets`` name.
+    """
+    kept, _, _ = _filter_datasets(ctx, measured)
+    jobs: list[ModelJob] = []
+
+    def add(job: ModelJob) -> None:
+        init = ctx.init_job(job)
+        if init is not None:
+            add(init)
+        if job not in jobs:
+            jobs.append(job)
+
+    for spec in kept:
+        add(spec.job)
+    return jobs
 
 
 def run_table_protocol(

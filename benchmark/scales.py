@@ -1,11 +1,15 @@
-"""Benchmark scales: dataset sizes, resolution, render quality and evaluation size.
+"""Benchmark scales: dataset sizes, render quality, evaluation size and how hard the
+timing protocols measure.
 
-Where this sits: every protocol reads one :class:`ScaleSettings` (``--scale``).
-Model sizes and training steps per scale belong to ``svorf``
-(``svorf.config.model_config(scale)`` / ``svorf.train.train_config(scale, preset)``;
-at the ``cpu`` scale the CLEVR-567 family uses ``svorf.recipe.recipe_configs``, see
-``benchmark.adapter.base_configs``); this module only fixes what the benchmark itself decides, and the report copies
-both into ``scale_settings`` so every number is written down.
+Where this sits: every protocol reads one :class:`ScaleSettings` (``--scale``). What a
+scale means for the model, its training and the cpu recipe is svorf's registry
+(``svorf.registry.SCALES``, reached through ``benchmark.adapter.base_configs``, the same
+configs ``svorf train --scale S`` uses); the scale names and the image resolution come from
+there too. This module only fixes what the benchmark itself decides: dataset sizes and
+render quality (:data:`SCALES`), the ``speed`` protocol's defaults
+(:data:`SPEED_DEFAULTS`) and the ``tradeoff`` protocol's repeats and sizes
+(:data:`TRADEOFF`). The report copies the settings into ``scale_settings`` so every number
+is written down.
 
 - ``smoke``: CI and tests; tiny datasets (4 train / 2 test scenes at 32x32, one
   render sample), a few training steps. Minutes for a protocol on 2 cores. It
@@ -25,8 +29,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from scenefmt.cli_util import choose
+from svorf.registry import SCALE_NAMES
+from svorf.registry import SCALES as SVORF_SCALES
 
-__all__ = ["SCALES", "ScaleSettings", "get_scale"]
+__all__ = [
+    "SCALES",
+    "SPEED_DEFAULTS",
+    "TRADEOFF",
+    "ScaleSettings",
+    "TradeoffSettings",
+    "get_scale",
+]
 
 
 @dataclass(frozen=True)
@@ -35,13 +48,14 @@ class ScaleSettings:
 
     Attributes:
         name: ``smoke`` / ``cpu`` / ``paper``.
-        resolution: rendered image side (pixels) of every dataset.
+        resolution: rendered image side (pixels) of every dataset: the image size of the
+            scale's model (``svorf.registry.SCALES[name].image_size``).
         train_scenes: training scenes per preset (``default`` for presets not listed).
         test_scenes: test scenes per preset.
         render_samples: Cycles samples per pixel (None = the generator's default).
         denoise: OpenImageDenoise after rendering (None = the generator's default).
         eval_scenes: test scenes evaluated (None = all).
-        train_steps: training steps (None = ``svorf.train.train_config(scale)``'s).
+        train_steps: training steps (None = the svorf scale's, ``svorf.registry``).
         speed_steps: timed training steps of the ``speed`` protocol (after warm-up).
         speed_warmup: untimed warm-up steps of the ``speed`` protocol.
         decompose_threshold: FG-ARI (percent) a model must reach, and exceed both the best
@@ -77,7 +91,7 @@ class ScaleSettings:
 SCALES: dict[str, ScaleSettings] = {
     "smoke": ScaleSettings(
         name="smoke",
-        resolution=32,
+        resolution=SVORF_SCALES["smoke"].image_size,
         train_scenes={"default": 4},
         test_scenes={"default": 2},
         render_samples=1,
@@ -101,7 +115,7 @@ SCALES: dict[str, ScaleSettings] = {
     ),
     "cpu": ScaleSettings(
         name="cpu",
-        resolution=64,
+        resolution=SVORF_SCALES["cpu"].image_size,
         train_scenes={"default": 240, "room-diverse": 400},
         test_scenes={"default": 50},
         render_samples=16,
@@ -120,7 +134,7 @@ SCALES: dict[str, ScaleSettings] = {
     ),
     "paper": ScaleSettings(
         name="paper",
-        resolution=256,
+        resolution=SVORF_SCALES["paper"].image_size,
         train_scenes={"default": 1000, "room-diverse": 5000},
         test_scenes={"default": 500},
         render_samples=None,
@@ -134,6 +148,86 @@ SCALES: dict[str, ScaleSettings] = {
                 "paper's model and schedule; needs a GPU."
             ),
         ),
+    ),
+}
+
+
+assert tuple(SCALES) == SCALE_NAMES  # internal invariant: svorf's scales, in its order
+
+
+#: Per-scale defaults of the ``speed`` protocol: ``SpeedOptions`` fields that differ from
+#: its defaults (``benchmark.protocols.speed_options.default_options``). smoke is quick
+#: (1 repeat, 2 generator scenes at 1 sample); paper renders its generator scenes larger.
+SPEED_DEFAULTS: dict[str, dict[str, Any]] = {
+    "smoke": {
+        "compare_repeats": 1,
+        "render_repeats": 1,
+        "gen_scenes": 2,
+        "gen_samples": 1,
+        "baseline_scenes": 1,
+        "baseline_resolution": 32,
+        "baseline_samples": 1,
+        "baseline_ref_samples": 16,
+        "baseline_psnr_scenes": 1,
+        "baseline_denoisers": ("factory",),
+    },
+    "cpu": {},
+    "paper": {"gen_scenes": 16, "gen_resolution": 128, "gen_samples": 64},
+}
+
+
+@dataclass(frozen=True)
+class TradeoffSettings:
+    """How hard the ``tradeoff`` protocol measures at one scale.
+
+    Attributes:
+        repeats: timed interleaved repeats (the median is taken over them).
+        warmup: untimed repeats before (allocator, caches).
+        threads: torch intra-op threads during the run (None = leave as is).
+        sharp: add the ``sharp-m`` weight set.
+        render_scenes: test scenes each point of the render curve renders (every view).
+        render_repeats: timed interleaved repeats of the render curve.
+        generator_scenes: clevr567 test scenes of the generator curve (every view).
+        generator_ref_samples: samples per pixel of its reference render.
+        generator: measure the generator curve (needs bpy).
+    """
+
+    repeats: int
+    warmup: int
+    threads: int | None
+    sharp: bool = True
+    render_scenes: int = 2
+    render_repeats: int = 1
+    generator_scenes: int = 1
+    generator_ref_samples: int = 64
+    generator: bool = True
+
+
+#: The ``tradeoff`` protocol's settings per scale.
+TRADEOFF: dict[str, TradeoffSettings] = {
+    # Tiny model, 2 scenes x 64 rays: seconds; one thread so tests stay quiet on 2 cores.
+    "smoke": TradeoffSettings(repeats=3, warmup=1, threads=1),
+    # The cpu-scale model and batch (4 x 128 rays) on a 2-core machine: minutes; the render
+    # curve renders 4 test scenes x 4 views at 64x64 per point (~0.3-0.6 s per view).
+    # The generator curve: 2 scenes x 4 views at 64x64 against a 512-sample reference.
+    "cpu": TradeoffSettings(
+        repeats=7,
+        warmup=2,
+        threads=2,
+        render_scenes=4,
+        render_repeats=2,
+        generator_scenes=2,
+        generator_ref_samples=512,
+    ),
+    # The paper's model and batch (16 x 64 rays); meant for a GPU.
+    "paper": TradeoffSettings(
+        repeats=5,
+        warmup=2,
+        threads=None,
+        render_scenes=8,
+        render_repeats=2,
+        generator_scenes=4,
+        generator_ref_samples=512,
     ),
 }
 

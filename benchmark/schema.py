@@ -55,6 +55,7 @@ import re
 from typing import Any
 
 from benchmark.paper_numbers import PAPER_TABLES
+from svorf.registry import SCALE_NAMES
 
 __all__ = [
     "METRIC_UNITS",
@@ -71,7 +72,8 @@ __all__ = [
 REPORT_SCHEMA_VERSION = "1.0"
 REPORT_KIND = "svorf-benchmark-report"
 PROTOCOLS = ("segmentation", "nvs", "ablation", "generalization", "speed", "tradeoff", "stability")
-SCALES = ("smoke", "cpu", "paper")
+#: Scale names (svorf's registry, ``svorf.registry.SCALE_NAMES``).
+SCALES: tuple[str, ...] = SCALE_NAMES
 ROW_SOURCES = ("paper", "measured", "baseline")
 DATA_SOURCES = ("generator", "synthetic", "existing")
 

@@ -1,8 +1,9 @@
-"""Model configuration for sVORF: one frozen dataclass, saved as plain JSON, and a registry.
+"""Model configuration for sVORF: one frozen dataclass, saved as plain JSON.
 
 Where it sits: ``svorf.model.SVORF(cfg)`` is built from a :class:`ModelConfig`; training,
 evaluation and the benchmark obtain configs from :func:`model_config` (scales ``smoke``,
-``cpu``, ``paper``) and store them with ``cfg.to_dict()`` as JSON next to checkpoints.
+``cpu``, ``paper``, whose sizes live in the registry ``svorf.registry``) and store them
+with ``cfg.to_dict()`` as JSON next to checkpoints.
 
 Every number the paper (Qi et al., NeurIPS 2023, "sVORF") fixes is given with its source;
 every choice the paper leaves open is a field here with a comment saying so.
@@ -16,11 +17,14 @@ import json
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
 
+from svorf.registry import SCALE_NAMES, SCALES
+
 Composition = Literal["slot_guided", "density_weighted", "slot_mixer"]
 SlotModule = Literal["transformer", "slot_attention"]
 EncoderNorm = Literal["batch", "group", "none"]
 DensityAct = Literal["softplus", "relu"]
 Scale = Literal["smoke", "cpu", "paper"]
+"""A scale name: the keys of ``svorf.registry.SCALES`` (tests/test_registry.py checks)."""
 CoordFrame = Literal["world", "input_azimuth"]
 SlotCentre = Literal["learned", "anchored", "attention", "attention_slots"]
 
@@ -508,7 +512,7 @@ def bf16_autocast_on(setting: bool | str, device: Any) -> bool:
 def model_config(
     scale: Scale, num_slots: int = 8, image_size: int | None = None, **overrides: Any
 ) -> ModelConfig:
-    """Registry of model sizes.
+    """The model of a scale (sizes from the registry, ``svorf.registry.SCALES``).
 
     Args:
         scale: "paper" = the paper's sizes (ResNet34 + upsampling to 512 channels at 256x256
@@ -517,8 +521,12 @@ def model_config(
             that stay within their tolerances (bf16_autocast, slot_keep_mass=0.99); "smoke" = a tiny
             model for tests (forward+backward well under a second at 32x32).
         num_slots: K including the background slot (paper: 8 CLEVR-567, 5 Room-*, 11 packed).
-        image_size: encoder input size; default 256 / 64 / 32 for paper / cpu / smoke.
+        image_size: encoder input size; default the scale's (256 / 64 / 32 for paper / cpu /
+            smoke).
         **overrides: any other ModelConfig field.
+
+    This is the scale's model without a preset or recipe; ``svorf.train_config.run_configs``
+    gives what ``svorf train --scale S --preset P`` trains.
 
     Paper scale counts 49.53M parameters (K=8) against the paper's 48.73M (+1.6%): encoder
     14.95M, slot decoder 12.88M, hypernetwork 21.45M, composition 0.24M. The paper leaves
@@ -528,59 +536,8 @@ def model_config(
     save 0.2M; any other decoder depth moves the count by 4.2M per layer, so 3 layers is the
     closest fit.
     """
-    if scale == "paper":
-        base = ModelConfig()
-        size = 256
-    elif scale == "cpu":
-        # Tuned later by the training engineer; docs/notes/cpu_recipe.md says what was measured.
-        base = ModelConfig(
-            enc_width=32,
-            enc_blocks=(1, 1, 1),
-            enc_norm="group",
-            feat_dim=128,
-            slot_dim=128,
-            dec_layers=3,
-            dec_heads=4,
-            dec_ffn=256,
-            mlp_width=64,
-            pos_freqs_xyz=6,
-            pos_freqs_dir=2,
-            comp_dim=64,
-            comp_heads=4,
-            n_coarse=16,
-            n_fine=16,
-            clip_to_box=True,
-            # Speed knobs that pass their tolerance tests (tests/test_speed_knobs.py; speeds
-            # from `python -m svorf.speedbench --scale cpu`): bf16 matmuls/activations with
-            # float32 transmittance where the hardware has bf16 ("auto": 2x faster on an
-            # AVX-512 BF16 CPU, 3-5x slower where torch emulates it on AVX2), and per point
-            # only the slots holding 99% of the composition mass (colour error <= 0.01 per
-            # point). Not on: slot_topk (top-2 of 8 keeps ~47% of the mass at
-            # initialisation) and fg_box (changes the model).
-            bf16_autocast="auto",
-            slot_keep_mass=0.99,
-        )
-        size = 64
-    elif scale == "smoke":
-        base = ModelConfig(
-            enc_width=8,
-            enc_blocks=(1, 1, 1),
-            enc_norm="group",
-            feat_dim=32,
-            slot_dim=32,
-            dec_layers=1,
-            dec_heads=2,
-            dec_ffn=64,
-            mlp_width=16,
-            pos_freqs_xyz=3,
-            pos_freqs_dir=1,
-            comp_dim=16,
-            comp_heads=2,
-            n_coarse=8,
-            n_fine=8,
-            clip_to_box=True,
-        )
-        size = 32
-    else:
-        raise ValueError(f"model_config: scale must be one of {get_args(Scale)}, got {scale!r}")
-    return base.replace(num_slots=num_slots, image_size=image_size or size, **overrides)
+    if scale not in SCALES:
+        raise ValueError(f"model_config: scale must be one of {SCALE_NAMES}, got {scale!r}")
+    spec = SCALES[scale]
+    base = ModelConfig(**spec.model)
+    return base.replace(num_slots=num_slots, image_size=image_size or spec.image_size, **overrides)

@@ -84,10 +84,10 @@ __all__ = [
 #: ``benchmark.metrics.segmentation_metrics``).
 SegMetricsFn = Callable[[Tensor, Tensor, int], dict[str, Tensor]]
 
-#: The recipe's choices on top of the plain cpu scale (docs/notes/cpu_recipe.md): model fields
-#: and train fields. It lives in svorf's scale registry (``svorf.train.CPU_RECIPE``), so
-#: ``svorf train --scale cpu`` and ``benchmark --scale cpu`` train the same model;
-#: ``recipe_configs(levers=...)`` overrides entries.
+#: The recipe's choices on top of the plain cpu scale (docs/notes/cpu_recipe.md): train fields
+#: and model fields. It lives in svorf's scale registry (``svorf.registry.SCALES["cpu"].recipe``,
+#: also ``svorf.train.CPU_RECIPE``), so ``svorf train --scale cpu`` and ``benchmark --scale
+#: cpu`` train the same model; ``recipe_configs(levers=...)`` overrides entries.
 RECIPE_LEVERS: dict[str, Any] = CPU_RECIPE
 
 _MODEL_LEVERS = CPU_RECIPE_MODEL_FIELDS

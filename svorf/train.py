@@ -3,10 +3,11 @@
 Where this sits: ``svorf.data`` (dataset + ray sampler) -> **here** (Adam with linear
 warm-up, paper appendix A) -> checkpoints in a run folder (``svorf.checkpoint``) ->
 ``load_run`` / ``predict_scene`` (``svorf.checkpoint``, ``svorf.predict``) for ``svorf
-render`` and the benchmark adapter. The configs and their registry (``TrainConfig``,
-scales, presets, the cpu recipe) are in ``svorf.train_config``. This module re-exports
-the public names of those three modules (their old home): callers keep importing them
-from ``svorf.train``.
+render`` and the benchmark adapter. The configs (``TrainConfig``, ``run_configs``,
+``config_key``) are in ``svorf.train_config``, what the scales, presets and the cpu recipe
+set in ``svorf.registry``. This module re-exports the public names of ``train_config``,
+``checkpoint`` and ``predict`` (their old home): callers keep importing them from
+``svorf.train``.
 
 A run folder holds::
 
@@ -79,6 +80,7 @@ from svorf.model import SVORF
 from svorf.predict import default_eval, predict_scene
 from svorf.ray_sampling import ErrorMap
 from svorf.train_config import (
+    BOOKKEEPING_FIELDS,
     CPU_RECIPE,
     CPU_RECIPE_MODEL_FIELDS,
     CPU_RECIPE_PRESETS,
@@ -88,6 +90,8 @@ from svorf.train_config import (
     PresetSpec,
     TrainConfig,
     apply_recipe,
+    config_key,
+    learning_fields,
     lr_at,
     recipe_applies,
     resolve_device,
@@ -97,6 +101,7 @@ from svorf.train_config import (
 
 # With the names re-exported from svorf.train_config, svorf.checkpoint and svorf.predict.
 __all__ = [
+    "BOOKKEEPING_FIELDS",
     "CHECKPOINT_FORMAT",
     "CHECKPOINT_NAME",
     "CPU_RECIPE",
@@ -113,9 +118,11 @@ __all__ = [
     "TrainingDiverged",
     "apply_recipe",
     "atomic_torch_save",
+    "config_key",
     "dataset_fingerprint",
     "default_eval",
     "init_weights_from",
+    "learning_fields",
     "load_run",
     "lr_at",
     "predict_scene",

@@ -4,14 +4,19 @@ Where this sits: below ``svorf.train`` (the loop) and ``svorf.checkpoint`` (whic
 these configs as JSON dicts in every checkpoint); beside ``svorf.config``, which does the
 same for the model (``ModelConfig``, ``model_config``). :func:`run_configs` is the one
 place that decides the (model, train) configs of a scale and preset: ``svorf train``,
-``svorf.recipe`` and the benchmark's ``--scale`` all go through it. The learning-rate
-schedule (:func:`lr_at`) and the device choice (:func:`resolve_device`) live here too.
-Everything is re-exported by ``svorf.train``, the old home of these names.
+``svorf.recipe`` and the benchmark's ``--scale`` all go through it, and :func:`config_key`
+names what a run learns (``svorf config`` prints it). What each scale, preset and recipe
+sets is data in ``svorf.registry``; the names :data:`PRESETS`, :data:`SCALES`,
+:data:`CPU_RECIPE` ... here are views of it. The learning-rate schedule (:func:`lr_at`)
+and the device choice (:func:`resolve_device`) live here too. Everything is re-exported
+by ``svorf.train``, the old home of these names.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -19,10 +24,13 @@ from typing import Any
 import torch
 
 from scenefmt.cli_util import choose
+from svorf import registry
 from svorf.config import ModelConfig, model_config
 from svorf.ray_sampling import RAY_SAMPLING
+from svorf.registry import PRESETS, PresetSpec, Recipe, recipe_for
 
 __all__ = [
+    "BOOKKEEPING_FIELDS",
     "CPU_RECIPE",
     "CPU_RECIPE_MODEL_FIELDS",
     "CPU_RECIPE_PRESETS",
@@ -32,6 +40,8 @@ __all__ = [
     "PresetSpec",
     "TrainConfig",
     "apply_recipe",
+    "config_key",
+    "learning_fields",
     "lr_at",
     "recipe_applies",
     "resolve_device",
@@ -146,38 +156,23 @@ class TrainConfig:
         return dataclasses.replace(self, **changes)
 
 
-@dataclass(frozen=True)
-class PresetSpec:
-    """What a training preset fixes: slots, slot masking and which data it trains on."""
+#: Scale names (``svorf.registry.SCALE_NAMES``).
+SCALES: tuple[str, ...] = registry.SCALE_NAMES
 
-    num_slots: int
-    data_presets: tuple[str, ...]
-    slot_mask_train: int = 0
-    init_from: str | None = None
-    """Training preset whose model starts this one (paper appendix A: "we initialize our
-    models for Room-Diverse using weights from a model that have previously been trained on
-    the CLEVR-567 dataset"); the benchmark trains that model first and passes its run as
-    ``train(init_from=...)``; ``svorf train --init-from RUN`` does the same by hand."""
-
-
-#: Training presets. The paper's K per dataset (appendix A): 8 for CLEVR-567, 5 for the
-#: Room datasets; the packed-CLEVR-11 setting trains on CLEVR-567 with 11 slots, 4 of them
-#: masked off per step. "synthetic" is the test split of
-#: ``svorf.synthetic`` (2-3 spheres).
-PRESETS: dict[str, PresetSpec] = {
-    "clevr567": PresetSpec(8, ("clevr567",)),
-    "clevr567-heldout": PresetSpec(8, ("clevr567-heldout",)),
-    "packed-clevr11": PresetSpec(11, ("clevr567",), slot_mask_train=4),
-    "room-chair": PresetSpec(5, ("room-chair",)),
-    "room-diverse": PresetSpec(5, ("room-diverse",), init_from="clevr567"),
-    "synthetic": PresetSpec(4, ("synthetic",)),
-}
-
-SCALES = ("smoke", "cpu", "paper")
+#: TrainConfig fields that do not change what a run learns (where and how often it logs,
+#: checkpoints and evaluates, and on which device): left out of :func:`config_key` and of
+#: the benchmark's model cache key.
+BOOKKEEPING_FIELDS: tuple[str, ...] = (
+    "device",
+    "log_every",
+    "ckpt_every",
+    "eval_every",
+    "eval_scenes",
+)
 
 
 def train_config(scale: str, preset: str = "clevr567", **overrides: Any) -> TrainConfig:
-    """Registry of training settings.
+    """The training settings of a scale (from the registry, ``svorf.registry.SCALES``).
 
     Args:
         scale: "smoke" (tests: seconds), "cpu" (a 2-core machine, about an hour at 64x64;
@@ -186,101 +181,50 @@ def train_config(scale: str, preset: str = "clevr567", **overrides: Any) -> Trai
         preset: a key of :data:`PRESETS` (checked; all presets share the settings today).
         **overrides: any TrainConfig field.
 
+    This is the scale's schedule without the recipe; :func:`run_configs` gives what
+    ``svorf train --scale S --preset P`` trains.
+
     The paper gives Adam 1e-4, betas (0.9, 0.999), 1,000 warm-up steps, 64 rays per scene
     and batch 16 on 8 GPUs for ~7 h; it does not give the number of steps. 150k is an
     assumption of ~0.17 s per step over those 7 h.
     """
     choose(preset, sorted(PRESETS), "preset")
-    if scale == "smoke":
-        base = TrainConfig(
-            steps=30,
-            batch_scenes=2,
-            rays_per_scene=64,
-            lr=1e-3,
-            warmup=5,
-            log_every=5,
-            ckpt_every=15,
-        )
-    elif scale == "cpu":
-        # ~1 h on 2 cores: one step of the cpu model (K=8, 16+16 samples) at 4 x 128 rays
-        # took 1.2-1.9 s on a shared, overloaded 2-core Xeon (4 x 256: 2.6-3.1 s), about
-        # 0.9 s when the machine is quiet. Object-heavy rays because uniform rays left the
-        # the calibration model of docs/notes/cpu_recipe.md on a "mean scene" plateau.
-        base = TrainConfig(
-            steps=4000,
-            batch_scenes=4,
-            rays_per_scene=128,
-            lr=4e-4,
-            warmup=500,
-            log_every=25,
-            ckpt_every=250,
-            eval_every=1000,
-            ray_sampling="object_heavy",
-        )
-    elif scale == "paper":
-        base = TrainConfig(
-            steps=150_000,
-            batch_scenes=16,
-            rays_per_scene=64,
-            lr=1e-4,
-            warmup=1000,
-            log_every=100,
-            ckpt_every=5000,
-        )
-    else:
-        choose(scale, SCALES, "scale")  # raises: not one of SCALES
-        raise AssertionError(scale)  # a scale of SCALES without a branch above
-    return base.replace(**overrides)
+    spec = registry.SCALES[choose(scale, SCALES, "scale")]
+    return TrainConfig(**spec.train).replace(**overrides)
 
 
-#: The cpu recipe (docs/notes/cpu_recipe.md): what the ``cpu`` scale changes on top of
-#: :func:`train_config` / ``svorf.config.model_config`` for the CLEVR-567 family
-#: (:data:`CPU_RECIPE_PRESETS`). Model fields are in :data:`CPU_RECIPE_MODEL_FIELDS`; the
-#: rest are TrainConfig fields. Every item is a documented config field that the
-#: ``paper`` scale leaves off. ``svorf train --scale cpu`` and ``benchmark --scale cpu``
-#: both get it through :func:`run_configs`.
-CPU_RECIPE: dict[str, Any] = {
-    "ray_sampling": "object_heavy",
-    "warmup": 100,
-    "nvs_warmup": 200,
-    "fg_zmin": 0.05,
-    "fg_box": 3.75,
-    "bg_outside_fg": True,
-    "comp_temperature": 1.0,
-    "coord_frame": "input_azimuth",
-    "slot_locality": 1.0,
-    # Anchored centres (docs/notes/cpu_recipe.md, rows L, L0): "learned" centres collapsed onto
-    # one spot at seed 1; anchored ones cannot, and matched or beat them at seeds 0 and 1.
-    "slot_centre": "anchored",
-}
+_CPU = registry.SCALES["cpu"].recipe
+assert _CPU is not None  # the cpu scale has its recipe
+
+#: The cpu recipe (docs/notes/cpu_recipe.md; ``svorf.registry.SCALES["cpu"].recipe``): what
+#: the ``cpu`` scale changes on top of :func:`train_config` / ``svorf.config.model_config``
+#: for the CLEVR-567 family (:data:`CPU_RECIPE_PRESETS`), train fields then model fields.
+#: ``svorf train --scale cpu`` and ``benchmark --scale cpu`` both get it through
+#: :func:`run_configs`.
+CPU_RECIPE: dict[str, Any] = _CPU.fields
 
 #: The :data:`CPU_RECIPE` keys that are ModelConfig fields.
-CPU_RECIPE_MODEL_FIELDS: tuple[str, ...] = (
-    "fg_zmin",
-    "fg_box",
-    "bg_outside_fg",
-    "comp_temperature",
-    "coord_frame",
-    "slot_locality",
-    "slot_centre",
-)
+CPU_RECIPE_MODEL_FIELDS: tuple[str, ...] = tuple(_CPU.model)
 
-#: Training presets whose ``cpu``-scale runs use :data:`CPU_RECIPE`. The Room presets keep
-#: the plain cpu scale (the recipe's locality box and floor prior are CLEVR-specific).
-CPU_RECIPE_PRESETS: tuple[str, ...] = ("clevr567", "clevr567-heldout", "packed-clevr11")
+#: Training presets whose ``cpu``-scale runs use :data:`CPU_RECIPE`.
+CPU_RECIPE_PRESETS: tuple[str, ...] = _CPU.presets
 
 
 def recipe_applies(scale: str, preset: str) -> bool:
-    """Whether :func:`run_configs` adds :data:`CPU_RECIPE` for this scale and preset."""
-    return scale == "cpu" and preset in CPU_RECIPE_PRESETS
+    """Whether :func:`run_configs` adds the scale's recipe for this scale and preset."""
+    return scale in registry.SCALES and recipe_for(scale, preset) is not None
 
 
 def apply_recipe(
-    mcfg: ModelConfig, tcfg: TrainConfig, levers: dict[str, Any] | None = None
+    mcfg: ModelConfig,
+    tcfg: TrainConfig,
+    levers: dict[str, Any] | None = None,
+    recipe: Recipe = _CPU,
 ) -> tuple[ModelConfig, TrainConfig]:
-    """``(mcfg, tcfg)`` with :data:`CPU_RECIPE` (entries replaced by ``levers``) applied."""
-    lv = {**CPU_RECIPE, **(levers or {})}
-    model_kw = {k: lv.pop(k) for k in CPU_RECIPE_MODEL_FIELDS if k in lv}
+    """``(mcfg, tcfg)`` with ``recipe`` (default the cpu recipe, :data:`CPU_RECIPE`) applied,
+    its entries replaced by ``levers`` (model or train fields)."""
+    lv = {**recipe.fields, **(levers or {})}
+    model_kw = {k: lv.pop(k) for k in recipe.model if k in lv}
     return mcfg.replace(**model_kw), tcfg.replace(**lv)
 
 
@@ -294,7 +238,8 @@ def run_configs(
 ) -> tuple[ModelConfig, TrainConfig]:
     """The (model, train) configs of a ``svorf train --scale S --preset P`` run.
 
-    At the ``cpu`` scale the CLEVR-567 family (:data:`CPU_RECIPE_PRESETS`) gets the cpu
+    The scale's sizes and schedule and the preset's slots come from ``svorf.registry``;
+    at the ``cpu`` scale the CLEVR-567 family (:data:`CPU_RECIPE_PRESETS`) gets the cpu
     recipe (:data:`CPU_RECIPE`) unless ``recipe=False``; ``train_overrides`` (any
     TrainConfig field) are applied last. This is the one place that decides a scale's
     configs: the benchmark's ``--scale`` goes through it too.
@@ -306,9 +251,35 @@ def run_configs(
     if spec.slot_mask_train:
         mcfg = mcfg.replace(slot_mask_train=spec.slot_mask_train)
     tcfg = train_config(scale, preset)
-    if recipe and recipe_applies(scale, preset):
-        mcfg, tcfg = apply_recipe(mcfg, tcfg)
+    scale_recipe = recipe_for(scale, preset) if recipe else None
+    if scale_recipe is not None:
+        mcfg, tcfg = apply_recipe(mcfg, tcfg, recipe=scale_recipe)
     return mcfg, tcfg.replace(**train_overrides)
+
+
+def learning_fields(tcfg: TrainConfig) -> dict[str, Any]:
+    """``tcfg.to_dict()`` without the :data:`BOOKKEEPING_FIELDS`: what changes the learning."""
+    return {k: v for k, v in tcfg.to_dict().items() if k not in BOOKKEEPING_FIELDS}
+
+
+def config_key(mcfg: ModelConfig, tcfg: TrainConfig) -> str:
+    """16 hex digits that name what a run with these configs learns.
+
+    The SHA-256 of the canonical JSON (sorted keys, no spaces) of ``{"model":
+    mcfg.to_dict(), "train": learning_fields(tcfg)}``: two runs with the same key train the
+    same model (same architecture, schedule and seed) whatever their device or logging.
+    ``svorf config`` prints it, and ``benchmark run ... --show-config`` prints it for every
+    model a protocol trains. It does not name the data (the benchmark's run key adds the
+    dataset's fingerprint).
+
+    Example:
+        >>> m, t = run_configs("cpu", "clevr567")
+        >>> config_key(m, t) == config_key(m, t.replace(device="cuda", log_every=1))
+        True
+    """
+    src = {"model": mcfg.to_dict(), "train": learning_fields(tcfg)}
+    text = json.dumps(src, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def resolve_device(name: str = "auto") -> torch.device:

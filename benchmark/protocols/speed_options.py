@@ -1,7 +1,8 @@
 """What the ``speed`` protocol measures at each scale: :class:`SpeedOptions`.
 
 Where this sits: :func:`benchmark.protocols.speed.run_speed` takes a :class:`SpeedOptions`
-(:func:`default_options` of the scale unless given) and hands it to the measurements of
+(:func:`default_options` of the scale unless given, from
+``benchmark.scales.SPEED_DEFAULTS``) and hands it to the measurements of
 :mod:`.speed_compare` and :mod:`.speed_generator`.
 """
 
@@ -10,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from typing import Any
+
+from benchmark.scales import SPEED_DEFAULTS
 
 __all__ = ["SpeedOptions", "default_options"]
 
@@ -106,12 +109,6 @@ class SpeedOptions:
 
 
 def default_options(scale: str) -> SpeedOptions:
-    """Per-scale defaults: smoke is quick (1 repeat, 2 generator scenes at 1 sample)."""
-    if scale == "smoke":
-        return SpeedOptions(compare_repeats=1, render_repeats=1, gen_scenes=2, gen_samples=1,
-                            baseline_scenes=1, baseline_resolution=32, baseline_samples=1,
-                            baseline_ref_samples=16, baseline_psnr_scenes=1,
-                            baseline_denoisers=("factory",))  # fmt: skip
-    if scale == "paper":
-        return SpeedOptions(gen_scenes=16, gen_resolution=128, gen_samples=64)
-    return SpeedOptions()
+    """Per-scale defaults (``benchmark.scales.SPEED_DEFAULTS``): smoke is quick (1 repeat,
+    2 generator scenes at 1 sample)."""
+    return SpeedOptions(**SPEED_DEFAULTS.get(scale, {}))

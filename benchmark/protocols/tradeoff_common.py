@@ -3,7 +3,8 @@
 Where this sits: :mod:`benchmark.protocols.tradeoff` runs the protocol; each curve has its
 module (:mod:`.tradeoff_step`, :mod:`.tradeoff_render`, :mod:`.tradeoff_training`,
 :mod:`.tradeoff_generator`) and the fronts theirs (:mod:`.tradeoff_pareto`). This module
-holds what several of them need: how hard each scale measures (:data:`SETTINGS`), the
+holds what several of them need: how hard each scale measures (:data:`SETTINGS`, defined
+with the benchmark's other per-scale settings in :mod:`benchmark.scales`), the
 weight sets the step and render curves use (:class:`WeightSet`), label formatting and the
 progress line.
 """
@@ -17,6 +18,7 @@ from typing import Any
 import torch
 
 from benchmark.log import log
+from benchmark.scales import TRADEOFF, TradeoffSettings
 
 __all__ = [
     "SETTINGS",
@@ -28,59 +30,9 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class TradeoffSettings:
-    """How hard one scale measures.
-
-    Attributes:
-        repeats: timed interleaved repeats (the median is taken over them).
-        warmup: untimed repeats before (allocator, caches).
-        threads: torch intra-op threads during the run (None = leave as is).
-        sharp: add the ``sharp-m`` weight set.
-        render_scenes: test scenes each point of the render curve renders (every view).
-        render_repeats: timed interleaved repeats of the render curve.
-        generator_scenes: clevr567 test scenes of the generator curve (every view).
-        generator_ref_samples: samples per pixel of its reference render.
-        generator: measure the generator curve (needs bpy).
-    """
-
-    repeats: int
-    warmup: int
-    threads: int | None
-    sharp: bool = True
-    render_scenes: int = 2
-    render_repeats: int = 1
-    generator_scenes: int = 1
-    generator_ref_samples: int = 64
-    generator: bool = True
-
-
-SETTINGS: dict[str, TradeoffSettings] = {
-    # Tiny model, 2 scenes x 64 rays: seconds; one thread so tests stay quiet on 2 cores.
-    "smoke": TradeoffSettings(repeats=3, warmup=1, threads=1),
-    # The cpu-scale model and batch (4 x 128 rays) on a 2-core machine: minutes; the render
-    # curve renders 4 test scenes x 4 views at 64x64 per point (~0.3-0.6 s per view).
-    # The generator curve: 2 scenes x 4 views at 64x64 against a 512-sample reference.
-    "cpu": TradeoffSettings(
-        repeats=7,
-        warmup=2,
-        threads=2,
-        render_scenes=4,
-        render_repeats=2,
-        generator_scenes=2,
-        generator_ref_samples=512,
-    ),
-    # The paper's model and batch (16 x 64 rays); meant for a GPU.
-    "paper": TradeoffSettings(
-        repeats=5,
-        warmup=2,
-        threads=None,
-        render_scenes=8,
-        render_repeats=2,
-        generator_scenes=4,
-        generator_ref_samples=512,
-    ),
-}
+#: How hard each scale measures (``benchmark.scales.TRADEOFF``, the benchmark's per-scale
+#: settings).
+SETTINGS: dict[str, TradeoffSettings] = TRADEOFF
 
 
 @dataclass

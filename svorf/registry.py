@@ -1,0 +1,270 @@
+"""The registry of scales and training presets: what ``smoke``, ``cpu`` and ``paper`` mean
+for the model and its training (with the cpu recipe), and what each training preset fixes.
+
+Where this sits: at the bottom of ``svorf``. It holds plain values and imports neither
+torch nor any other svorf module, so every layer (and the benchmark) can read it.
+``svorf.config.model_config`` builds a ``ModelConfig`` from a scale's :attr:`ScaleSpec.model`
+fields, ``svorf.train_config.train_config`` a ``TrainConfig`` from its
+:attr:`ScaleSpec.train` fields, and ``svorf.train_config.run_configs`` adds the preset
+(slot count, slot masking) and the scale's :class:`Recipe` where it applies. That is what
+``svorf train --scale S --preset P`` trains and what ``benchmark run ... --scale S`` trains
+for P (``svorf config`` and ``benchmark run ... --show-config`` print the same config key).
+The benchmark's own per-scale settings (dataset sizes, render quality, how hard the timing
+protocols measure) live in ``benchmark.scales``, which takes its image resolution from here.
+
+Field values are the ``ModelConfig`` / ``TrainConfig`` fields a scale sets; every field not
+named keeps its default, and the ``ModelConfig`` defaults are the paper's model.
+
+Example:
+    >>> from svorf.registry import SCALES, recipe_for
+    >>> SCALES["cpu"].image_size
+    64
+    >>> recipe_for("cpu", "clevr567").name, recipe_for("cpu", "room-chair")
+    ('cpu recipe', None)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from scenefmt.cli_util import choose
+
+__all__ = [
+    "PRESETS",
+    "SCALES",
+    "SCALE_NAMES",
+    "PresetSpec",
+    "Recipe",
+    "ScaleSpec",
+    "get_scale",
+    "recipe_for",
+]
+
+
+@dataclass(frozen=True)
+class PresetSpec:
+    """What a training preset fixes: slots, slot masking and which data it trains on."""
+
+    num_slots: int
+    data_presets: tuple[str, ...]
+    slot_mask_train: int = 0
+    init_from: str | None = None
+    """Training preset whose model starts this one (paper appendix A: "we initialize our
+    models for Room-Diverse using weights from a model that have previously been trained on
+    the CLEVR-567 dataset"); the benchmark trains that model first and passes its run as
+    ``train(init_from=...)``; ``svorf train --init-from RUN`` does the same by hand."""
+
+
+#: Training presets. The paper's K per dataset (appendix A): 8 for CLEVR-567, 5 for the
+#: Room datasets; the packed-CLEVR-11 setting trains on CLEVR-567 with 11 slots, 4 of them
+#: masked off per step. "synthetic" is the test split of ``svorf.synthetic`` (2-3 spheres).
+PRESETS: dict[str, PresetSpec] = {
+    "clevr567": PresetSpec(8, ("clevr567",)),
+    "clevr567-heldout": PresetSpec(8, ("clevr567-heldout",)),
+    "packed-clevr11": PresetSpec(11, ("clevr567",), slot_mask_train=4),
+    "room-chair": PresetSpec(5, ("room-chair",)),
+    "room-diverse": PresetSpec(5, ("room-diverse",), init_from="clevr567"),
+    "synthetic": PresetSpec(4, ("synthetic",)),
+}
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """Config fields a scale sets on top of its sizes for some presets.
+
+    Attributes:
+        name: how reports and help texts call it ("cpu recipe").
+        train: ``TrainConfig`` fields, in the order they are applied and recorded.
+        model: ``ModelConfig`` fields.
+        presets: training presets (keys of :data:`PRESETS`) that get it.
+        doc: where it is measured and argued.
+    """
+
+    name: str
+    train: dict[str, Any]
+    model: dict[str, Any]
+    presets: tuple[str, ...]
+    doc: str = ""
+
+    @property
+    def fields(self) -> dict[str, Any]:
+        """Every field of the recipe in one dict: the train fields, then the model fields."""
+        return {**self.train, **self.model}
+
+
+@dataclass(frozen=True)
+class ScaleSpec:
+    """What one scale means for the model and its training.
+
+    Attributes:
+        name: ``smoke`` / ``cpu`` / ``paper``.
+        summary: one line for help texts.
+        image_size: encoder input side in pixels (square); the benchmark renders its
+            datasets at this resolution.
+        model: ``ModelConfig`` fields that differ from the defaults (the paper's model).
+        train: ``TrainConfig`` fields that differ from the defaults.
+        recipe: set on top of the scale for :attr:`Recipe.presets` (None: no recipe).
+    """
+
+    name: str
+    summary: str
+    image_size: int
+    model: dict[str, Any] = field(default_factory=dict)
+    train: dict[str, Any] = field(default_factory=dict)
+    recipe: Recipe | None = None
+
+
+#: The cpu recipe (docs/notes/cpu_recipe.md): what the ``cpu`` scale changes for the
+#: CLEVR-567 family. Every item is a documented config field that the ``paper`` scale
+#: leaves off. The Room presets keep the plain cpu scale (the recipe's locality box and
+#: floor prior are CLEVR-specific).
+_CPU_RECIPE = Recipe(
+    name="cpu recipe",
+    train={"ray_sampling": "object_heavy", "warmup": 100, "nvs_warmup": 200},
+    model={
+        "fg_zmin": 0.05,
+        "fg_box": 3.75,
+        "bg_outside_fg": True,
+        "comp_temperature": 1.0,
+        "coord_frame": "input_azimuth",
+        "slot_locality": 1.0,
+        # Anchored centres (docs/notes/cpu_recipe.md, rows L, L0): "learned" centres
+        # collapsed onto one spot at seed 1; anchored ones cannot, and matched or beat them
+        # at seeds 0 and 1.
+        "slot_centre": "anchored",
+    },
+    presets=("clevr567", "clevr567-heldout", "packed-clevr11"),
+    doc="docs/notes/cpu_recipe.md",
+)
+
+#: The scales. Sizes the paper leaves open are argued in ``svorf.config.model_config``.
+SCALES: dict[str, ScaleSpec] = {
+    # A tiny model for tests: forward + backward well under a second at 32x32; training
+    # takes seconds.
+    "smoke": ScaleSpec(
+        name="smoke",
+        summary="seconds; tests",
+        image_size=32,
+        model={
+            "enc_width": 8,
+            "enc_blocks": (1, 1, 1),
+            "enc_norm": "group",
+            "feat_dim": 32,
+            "slot_dim": 32,
+            "dec_layers": 1,
+            "dec_heads": 2,
+            "dec_ffn": 64,
+            "mlp_width": 16,
+            "pos_freqs_xyz": 3,
+            "pos_freqs_dir": 1,
+            "comp_dim": 16,
+            "comp_heads": 2,
+            "n_coarse": 8,
+            "n_fine": 8,
+            "clip_to_box": True,
+        },
+        train={
+            "steps": 30,
+            "batch_scenes": 2,
+            "rays_per_scene": 64,
+            "lr": 1e-3,
+            "warmup": 5,
+            "log_every": 5,
+            "ckpt_every": 15,
+        },
+    ),
+    # A ~2.96M-parameter model for 64x64 inputs with 16+16 samples inside the scene box,
+    # trained for about an hour on 2 cores.
+    "cpu": ScaleSpec(
+        name="cpu",
+        summary="about an hour on a CPU",
+        image_size=64,
+        model={
+            "enc_width": 32,
+            "enc_blocks": (1, 1, 1),
+            "enc_norm": "group",
+            "feat_dim": 128,
+            "slot_dim": 128,
+            "dec_layers": 3,
+            "dec_heads": 4,
+            "dec_ffn": 256,
+            "mlp_width": 64,
+            "pos_freqs_xyz": 6,
+            "pos_freqs_dir": 2,
+            "comp_dim": 64,
+            "comp_heads": 4,
+            "n_coarse": 16,
+            "n_fine": 16,
+            "clip_to_box": True,
+            # Speed knobs that pass their tolerance tests (tests/test_speed_knobs.py; speeds
+            # from `python -m svorf.speedbench --scale cpu`): bf16 matmuls/activations with
+            # float32 transmittance where the hardware has bf16 ("auto": 2x faster on an
+            # AVX-512 BF16 CPU, 3-5x slower where torch emulates it on AVX2), and per point
+            # only the slots holding 99% of the composition mass (colour error <= 0.01 per
+            # point). Not on: slot_topk (top-2 of 8 keeps ~47% of the mass at
+            # initialisation) and fg_box (changes the model; the recipe sets it).
+            "bf16_autocast": "auto",
+            "slot_keep_mass": 0.99,
+        },
+        # ~1 h on 2 cores: one step of the cpu model (K=8, 16+16 samples) at 4 x 128 rays
+        # took 1.2-1.9 s on a shared, overloaded 2-core Xeon (4 x 256: 2.6-3.1 s), about
+        # 0.9 s when the machine is quiet. Object-heavy rays because uniform rays left the
+        # calibration model of docs/notes/cpu_recipe.md on a "mean scene" plateau.
+        train={
+            "steps": 4000,
+            "batch_scenes": 4,
+            "rays_per_scene": 128,
+            "lr": 4e-4,
+            "warmup": 500,
+            "log_every": 25,
+            "ckpt_every": 250,
+            "eval_every": 1000,
+            "ray_sampling": "object_heavy",
+        },
+        recipe=_CPU_RECIPE,
+    ),
+    # The paper's model (every ModelConfig default) and optimiser: Adam 1e-4, betas
+    # (0.9, 0.999), 1,000 warm-up steps, 64 rays per scene and batch 16 on 8 GPUs for ~7 h.
+    # The paper does not give the number of steps: 150k assumes ~0.17 s per step.
+    "paper": ScaleSpec(
+        name="paper",
+        summary="the paper's model and schedule; GPUs",
+        image_size=256,
+        model={},
+        train={
+            "steps": 150_000,
+            "batch_scenes": 16,
+            "rays_per_scene": 64,
+            "lr": 1e-4,
+            "warmup": 1000,
+            "log_every": 100,
+            "ckpt_every": 5000,
+        },
+    ),
+}
+
+#: Scale names, smallest first.
+SCALE_NAMES: tuple[str, ...] = tuple(SCALES)
+
+for _spec in SCALES.values():  # internal invariant: recipes name known presets
+    assert _spec.recipe is None or set(_spec.recipe.presets) <= set(PRESETS), _spec.name
+
+
+def get_scale(name: str) -> ScaleSpec:
+    """The :class:`ScaleSpec` of scale ``name``.
+
+    Raises:
+        ValueError: an unknown scale (one line naming the known ones; "did you mean ...?").
+    """
+    return SCALES[choose(name, SCALES, "scale")]
+
+
+def recipe_for(scale: str, preset: str) -> Recipe | None:
+    """The recipe a ``scale`` run of training preset ``preset`` gets (None: none).
+
+    Raises:
+        ValueError: an unknown scale.
+    """
+    recipe = get_scale(scale).recipe
+    return recipe if recipe is not None and preset in recipe.presets else None
