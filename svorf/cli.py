@@ -8,6 +8,8 @@ Usage::
     svorf render RUN --data DIR --scene I [--out DIR] [--force] [--allow-preset-mismatch]
                  [--input-view V] [--chunk N] [--device auto|cpu|cuda]
     svorf info --scale paper [--preset clevr567] [--image-size N]
+    svorf edit RUN --data DIR --scene I [--move-object K --offset DX DY]
+               [--swap-background DONOR] [--out DIR] [--force]   (svorf.edit_cli)
 
     torchrun --nproc_per_node N -m svorf.cli train ...   (data parallel, see below)
 
@@ -130,6 +132,10 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--input-view", type=int, default=0, help="view fed to the encoder")
     r.add_argument("--chunk", type=int, default=4096, help="rays per rendering chunk")
     r.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
+
+    from svorf.edit_cli import add_edit_parser
+
+    add_edit_parser(sub)
 
     i = sub.add_parser("info", help="print the parameter count of a scale")
     i.add_argument("--scale", required=True, choices=SCALES, help=_SCALE_HELP)
@@ -374,7 +380,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from svorf.data import DatasetError
     from svorf.train import CheckpointError, TrainingDiverged
 
-    cmd = {"train": _cmd_train, "render": _cmd_render, "info": _cmd_info}[args.command]
+    from svorf.edit_cli import cmd_edit
+
+    cmd = cmd_edit if args.command == "edit" else {"train": _cmd_train, "render": _cmd_render, "info": _cmd_info}[args.command]
     try:
         return cmd(args)
     except TrainingDiverged as e:
