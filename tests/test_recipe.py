@@ -192,7 +192,7 @@ def test_bg_outside_fg_keeps_the_background_slot_out_of_the_object_region():
 
 
 def test_bg_floor_slab_keeps_the_background_in_a_slab_under_the_object_region():
-    kw = dict(fg_zmin=0.0, fg_box=3.0, bg_outside_fg=True)
+    kw = {"fg_zmin": 0.0, "fg_box": 3.0, "bg_outside_fg": True}
     base, slab = _model(**kw), _model(**kw, bg_floor_slab=0.2)
     slab.load_state_dict(base.state_dict())
     imgs = torch.rand(1, 3, 32, 32)
