@@ -10,6 +10,8 @@ Usage::
     svorf info --scale paper [--preset clevr567] [--image-size N]
     svorf edit RUN --data DIR --scene I [--move-object K --offset DX DY]
                [--swap-background DONOR] [--out DIR] [--force]   (svorf.edit_cli)
+    svorf config --scale cpu --preset clevr567 [--image-size N] [--steps N] [--seed S]
+                 [--json]
 
     torchrun --nproc_per_node N -m svorf.cli train ...   (data parallel, see below)
 
@@ -17,6 +19,12 @@ Usage::
 the process group (NCCL on CUDA, gloo on CPU) and trains data-parallel: the global batch
 stays the scale's ``batch_scenes`` (it must be divisible by the number of ranks), rank 0
 writes the run folder and prints; see ``svorf.distributed`` and ``docs/scaleout.md``.
+
+``svorf config`` prints the config key of what ``svorf train`` with the same flags would
+train (``svorf.train_config.config_key``: the model config and the training settings that
+change what is learned, not the data, device or logging) without training anything;
+``benchmark run NAME --scale S --show-config`` prints the key of every model a benchmark
+protocol trains, so the two can be compared. ``--json`` adds both configs.
 
 ``svorf render`` writes into ``RUN/render/{preset}-{split}/scNNNN`` (named after the
 data's manifest, so renders of different datasets never mix) and refuses a folder that
@@ -62,15 +70,18 @@ GENERALIZATION_TEST_DATA: dict[str, tuple[str, ...]] = {
 }
 
 
-_SCALE_HELP = (
-    "model and schedule size: smoke (seconds; tests), cpu (about an hour on a CPU), "
-    "paper (the paper's model and schedule; GPUs)"
-)
+def _scale_help() -> str:
+    from svorf.registry import SCALES
+
+    return "model and schedule size: " + ", ".join(
+        f"{name} ({spec.summary})" for name, spec in SCALES.items()
+    )
 
 
 def _parser() -> argparse.ArgumentParser:
-    from svorf.train import PRESETS, SCALES
+    from svorf.registry import PRESETS, SCALE_NAMES
 
+    scale_help = _scale_help()
     p = OneLineParser(prog="svorf", description="Train and inspect sVORF models.")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -82,7 +93,7 @@ def _parser() -> argparse.ArgumentParser:
         choices=sorted(PRESETS),
         help="training preset (sets the slot count; must match the data)",
     )
-    t.add_argument("--scale", required=True, choices=SCALES, help=_SCALE_HELP)
+    t.add_argument("--scale", required=True, choices=SCALE_NAMES, help=scale_help)
     t.add_argument("--out", required=True, help="run folder (checkpoint, logs)")
     t.add_argument("--steps", type=int, help="total optimizer steps (default: the scale's)")
     t.add_argument(
@@ -138,11 +149,25 @@ def _parser() -> argparse.ArgumentParser:
     add_edit_parser(sub)
 
     i = sub.add_parser("info", help="print the parameter count of a scale")
-    i.add_argument("--scale", required=True, choices=SCALES, help=_SCALE_HELP)
+    i.add_argument("--scale", required=True, choices=SCALE_NAMES, help=scale_help)
     i.add_argument(
         "--preset", default="clevr567", choices=sorted(PRESETS), help="sets the slot count"
     )
     i.add_argument("--image-size", type=int, help="resolution (default: the scale's)")
+
+    c = sub.add_parser(
+        "config",
+        help="print the config key (and with --json the configs) that `svorf train` with "
+        "the same flags trains; trains nothing",
+    )
+    c.add_argument("--scale", required=True, choices=SCALE_NAMES, help=scale_help)
+    c.add_argument(
+        "--preset", required=True, choices=sorted(PRESETS), help="training preset (slot count)"
+    )
+    c.add_argument("--image-size", type=int, help="training resolution (default: the scale's)")
+    c.add_argument("--steps", type=int, help="total optimizer steps (default: the scale's)")
+    c.add_argument("--seed", type=int, help="random seed (default: 0)")
+    c.add_argument("--json", action="store_true", help="print the key and both configs as JSON")
     return p
 
 
@@ -257,6 +282,7 @@ def _train_ranked(
 ) -> int:
     """The training part of ``svorf train`` (every rank under torchrun; rank 0 prints)."""
     from svorf.train import train
+    from svorf.train_config import config_key
 
     main = ctx is None or ctx.is_main
     if a.resume:  # a corrupt checkpoint is reported before any data is loaded
@@ -268,7 +294,8 @@ def _train_ranked(
         ranks = "" if ctx is None else f", {ctx.world_size} ranks ({ctx.backend})"
         print(
             f"svorf train: scale {a.scale}, preset {a.preset}, K={mcfg.num_slots}, "
-            f"image {mcfg.image_size}, {n:,} parameters, {tcfg.steps} steps{ranks}",
+            f"image {mcfg.image_size}, {n:,} parameters, {tcfg.steps} steps{ranks}, "
+            f"config key {config_key(mcfg, tcfg)}",
             flush=True,
         )
     summary = train(
@@ -371,6 +398,35 @@ def _cmd_info(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_config(a: argparse.Namespace) -> int:
+    from svorf.registry import recipe_for
+    from svorf.train_config import config_key, run_configs
+
+    if a.steps is not None and a.steps < 1:
+        raise _UsageError(f"--steps must be >= 1, got {a.steps}")
+    overrides = {k: v for k, v in (("steps", a.steps), ("seed", a.seed)) if v is not None}
+    mcfg, tcfg = run_configs(a.scale, a.preset, image_size=a.image_size, **overrides)
+    key = config_key(mcfg, tcfg)
+    if a.json:
+        out = {
+            "config_key": key,
+            "scale": a.scale,
+            "preset": a.preset,
+            "model_config": mcfg.to_dict(),
+            "train_config": tcfg.to_dict(),
+        }
+        print(json.dumps(out, indent=2, sort_keys=True))
+        return 0
+    scale_recipe = recipe_for(a.scale, a.preset)
+    recipe = "" if scale_recipe is None else f" with the {scale_recipe.name}"
+    print(
+        f"config key {key}: svorf train --scale {a.scale} --preset {a.preset}{recipe} "
+        f"(K={mcfg.num_slots}, image {mcfg.image_size}, {tcfg.steps} steps x "
+        f"{tcfg.batch_scenes} scenes x {tcfg.rays_per_scene} rays, seed {tcfg.seed})"
+    )
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``svorf`` console script; returns the exit status."""
     try:
@@ -378,11 +434,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as e:  # argparse: --help (0) or a usage error (2)
         return int(e.code or 0)
     from svorf.data import DatasetError
+    from svorf.edit_cli import cmd_edit
     from svorf.train import CheckpointError, TrainingDiverged
 
-    from svorf.edit_cli import cmd_edit
-
-    cmd = cmd_edit if args.command == "edit" else {"train": _cmd_train, "render": _cmd_render, "info": _cmd_info}[args.command]
+    cmd = {
+        "train": _cmd_train,
+        "render": _cmd_render,
+        "edit": cmd_edit,
+        "info": _cmd_info,
+        "config": _cmd_config,
+    }[args.command]
     try:
         return cmd(args)
     except TrainingDiverged as e:
