@@ -535,3 +535,27 @@ def diverging_run(
         out["load_error"] = f"{type(e).__name__}: {e}"
     out["temp_files"] = len([p for p in run.rglob("*") if ".tmp" in p.name])
     return out
+
+
+def read_manip_truth(root: str | os.PathLike, scene: int, hw: Any = None) -> Any:
+    """The moved / background-changed ground truth of a manipulation split's scene
+    (``svorf.edit_scene.ManipTruth`` at resolution ``hw``, default the stored one)."""
+    from svorf.edit_scene import read_manip_truth as read
+
+    return read(root, scene, None if hw is None else tuple(hw))
+
+
+def edit_scene(model: Any, dataset: Any, index: int, truth: Any, input_view: int = 0) -> Any:
+    """Render scene ``index`` unedited, with ``truth``'s object moved (slot picked by IoU with
+    its ``_mask_for_moving``, as uORF) and with the background of ``truth``'s providing view
+    (``svorf.edit_scene.EditResult``). The move is left out when the object is not visible
+    in the input view."""
+    from svorf.edit_scene import edit_scene as edit
+
+    target = truth.mask_for_moving[input_view]
+    move = bool(target.any())
+    return edit(
+        model, dataset, index, input_view=input_view,
+        target_mask=target if move else None, offset=truth.offset if move else None,
+        donor_image=truth.providing[input_view],
+    )  # fmt: skip

@@ -9,7 +9,7 @@ Report layout (``schema_version`` ``REPORT_SCHEMA_VERSION``)::
 
     {
       "schema_version": "1.0", "kind": "svorf-benchmark-report",
-      "protocol": "segmentation|nvs|ablation|generalization|speed|tradeoff|stability",
+      "protocol": "segmentation|nvs|ablation|generalization|speed|tradeoff|stability|editing",
       "scale": "smoke|cpu|paper", "status": "complete|partial",
       "created_utc": "2025-01-01T00:00:00Z",
       "git": {"commit": str|null, "dirty": bool|null, "reason": str|null},
@@ -71,7 +71,10 @@ __all__ = [
 
 REPORT_SCHEMA_VERSION = "1.0"
 REPORT_KIND = "svorf-benchmark-report"
-PROTOCOLS = ("segmentation", "nvs", "ablation", "generalization", "speed", "tradeoff", "stability")
+PROTOCOLS = (
+    "segmentation", "nvs", "ablation", "generalization", "speed", "tradeoff", "stability",
+    "editing",
+)  # fmt: skip
 #: Scale names (svorf's registry, ``svorf.registry.SCALE_NAMES``).
 SCALES: tuple[str, ...] = SCALE_NAMES
 ROW_SOURCES = ("paper", "measured", "baseline")

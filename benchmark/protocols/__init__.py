@@ -5,6 +5,8 @@
 - ``speed``: training steps/s, peak memory and render time per view (:mod:`.speed`).
 - ``stability``: volume-rendering stress against a float64 reference (:mod:`.stability`).
 - ``tradeoff``: a time-vs-error curve for every speed knob of the model (:mod:`.tradeoff`).
+- ``editing``: moved-object and changed-background renders against re-rendered ground
+  truth of the manipulation split (:mod:`.editing`).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ PROTOCOLS: dict[str, Callable[[Context], Path]] = {
     "speed": _lazy("speed", "run_speed"),
     "tradeoff": _lazy("tradeoff", "run_tradeoff"),
     "stability": _lazy("stability", "run_stability"),
+    "editing": _lazy("editing", "run_editing"),
 }
 
 
