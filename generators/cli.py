@@ -1,6 +1,6 @@
 """The ``generate`` command (thin wrapper over ``pipeline.generate_dataset``).
 
-    generate --preset clevr567 [--split train|test] [--n N] [--out DIR] [--workers W]
+    generate --preset clevr567 [--split train|test|manip] [--n N] [--out DIR] [--workers W]
              [--resolution 128] [--seed S] [--samples 8] [--denoise/--no-denoise]
              [--bounces 4] [--threads T] [--shard i/n] [--camera-radius R]
              [--source DIR] [--backend local|ray [--address ADDR]] [--no-progress]
@@ -53,7 +53,10 @@ def _gen_parser() -> OneLineParser:
                  "(subcommands: 'generate verify DIR', 'generate preview --preset NAME').")  # fmt: skip
     ap.add_argument("--preset", required=True, help=f"one of: {', '.join(sorted(PRESETS))}")
     ap.add_argument(
-        "--split", default=None, help="train or test (default: the preset's first split)"
+        "--split",
+        default=None,
+        help="train, test, or manip: per scene also a moved and a background-changed variant "
+        "in uORF's manipulation layout (default: the preset's first split)",
     )
     ap.add_argument("--n", type=int, default=None, help="scenes (default: the preset's split size)")
     ap.add_argument(
