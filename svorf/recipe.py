@@ -4,7 +4,8 @@ segmentation metrics over wall-clock time, and the recipe's levers as config fie
 Where it sits: on top of ``svorf.train.train`` (which it calls with ``max_wall_s`` and an
 ``eval_fn``). Nothing here imports ``benchmark`` (svorf depends on ``scenefmt`` only):
 the segmentation metrics are a callable (:func:`make_eval_fn`), by default the ARI, FG-ARI
-and NV-ARI of this module (:func:`segmentation_metrics_basic`, equal to
+and NV-ARI of this module (:func:`segmentation_metrics_basic`, from ``svorf.ari``, the
+project's one ARI that the benchmark scores with too; equal to
 ``benchmark.metrics.segmentation_metrics`` on those keys: tests/test_recipe.py), which
 the command line (``python -m svorf.recipe train-eval``) uses too.
 
@@ -49,6 +50,7 @@ from torch import Tensor
 
 from scenefmt import atomic_write_json
 from scenefmt.cli_util import USAGE, OneLineParser, doc_summary, fail
+from svorf.ari import adjusted_rand_index
 from svorf.config import ModelConfig
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
@@ -115,35 +117,6 @@ def recipe_configs(
 
 
 # --------------------------------------------------------------------------- metrics
-
-
-def adjusted_rand_index(pred: Tensor, gt: Tensor, mask: Tensor | None = None) -> float:
-    """ARI of two integer labelings of the same pixels (optionally only where ``mask``).
-
-    NaN when fewer than 2 pixels are scored; 1.0 when both labelings are a single cluster.
-    """
-    p, g = pred.reshape(-1).long(), gt.reshape(-1).long()
-    if mask is not None:
-        keep = mask.reshape(-1).bool()
-        p, g = p[keep], g[keep]
-    n = p.numel()
-    if n < 2:
-        return math.nan
-    _, p = torch.unique(p, return_inverse=True)
-    _, g = torch.unique(g, return_inverse=True)
-    np_, ng = int(p.max()) + 1, int(g.max()) + 1
-    cont = torch.bincount(p * ng + g, minlength=np_ * ng).view(np_, ng).double()
-
-    def c2(x: Tensor) -> Tensor:
-        return (x * (x - 1) / 2).sum()
-
-    idx, a, b = c2(cont), c2(cont.sum(1)), c2(cont.sum(0))
-    total = n * (n - 1) / 2
-    expected = a * b / total
-    max_idx = (a + b) / 2
-    if float(max_idx - expected) == 0.0:
-        return 1.0
-    return float((idx - expected) / (max_idx - expected))
 
 
 def segmentation_metrics_basic(pred: Tensor, gt: Tensor, input_view: int = 0) -> dict[str, Tensor]:

@@ -6,13 +6,14 @@ arg-max slot per pixel, and call :func:`segmentation_metrics` with the ground-tr
 instance maps of the dataset (instance id 0 = background, k = object k). Nothing
 here knows about models or files: label maps in, per-scene float64 scores out.
 
-The adjusted Rand index is computed per batch row from a sparse contingency table
-with float64 pair counts and follows ``sklearn.metrics.adjusted_rand_score``
-exactly, including its degenerate case (no disagreeing pair => 1.0, e.g. both
-labelings a single cluster, both all-singletons, or a single pixel). The one
-deliberate difference: a row with *no* pixel left (e.g. FG-ARI on a view without
-foreground) gives NaN here, where sklearn returns 1.0 for empty input; protocols
-aggregate with ``nanmean`` and report how many rows were NaN.
+The adjusted Rand index is svorf's (``svorf.ari.ari_rows``, the project's one ARI, a
+pure function of label maps); this module checks the inputs and builds the scores from
+it. It is computed per batch row from a sparse contingency table with float64 pair
+counts and follows ``sklearn.metrics.adjusted_rand_score`` exactly, including its
+degenerate case (no disagreeing pair => 1.0, e.g. both labelings a single cluster, both
+all-singletons, or a single pixel). The one deliberate difference: a row with *no* pixel
+left (e.g. FG-ARI on a view without foreground) gives NaN here, where sklearn returns 1.0
+for empty input; protocols aggregate with ``nanmean`` and report how many rows were NaN.
 
 Example:
     >>> import torch
@@ -34,6 +35,7 @@ from benchmark.metrics._checks import (
     require_same_shape,
     require_tensor,
 )
+from svorf.ari import ari_rows
 
 __all__ = [
     "SEGMENTATION_KEYS",
@@ -75,49 +77,6 @@ def _check_labels(pred: object, gt: object, ignore: object | None) -> tuple[Tens
     return pred, gt, ignore
 
 
-def _ari_rows(pred: Tensor, gt: Tensor, valid: Tensor) -> Tensor:
-    """ARI per row of already validated ``[B, P]`` integer maps; ``valid`` is ``[B, P]`` bool."""
-    batch = pred.shape[0]
-    device = pred.device
-    f64 = torch.float64
-    if batch == 0:
-        return torch.empty(0, dtype=f64, device=device)
-    # Compact the labels to 0..n-1 over the whole batch so the table index stays
-    # small whatever the label values are (instance ids, slot indices).
-    _, p = torch.unique(pred, return_inverse=True)
-    _, g = torch.unique(gt, return_inverse=True)
-    n_p = int(p.max()) + 1 if p.numel() else 1
-    n_g = int(g.max()) + 1 if g.numel() else 1
-    rows = torch.arange(batch, device=device).unsqueeze(1).expand_as(p)
-    b_v, p_v, g_v = rows[valid], p[valid], g[valid]
-
-    # Sparse contingency table: counts n_ij of the (row, pred, gt) triples present.
-    # Only sums of squared counts enter the pair counts, so the dense table
-    # (which can be P x P for all-distinct labels) is never built.
-    cells_per_row = n_p * n_g
-    keys, cell_counts = torch.unique((b_v * n_p + p_v) * n_g + g_v, return_counts=True)
-    cell_counts = cell_counts.to(f64)
-    sum_sq = torch.zeros(batch, dtype=f64, device=device)
-    sum_sq.index_add_(0, keys // cells_per_row, cell_counts * cell_counts)
-    pred_sizes = torch.bincount(b_v * n_p + p_v, minlength=batch * n_p).to(f64)
-    gt_sizes = torch.bincount(b_v * n_g + g_v, minlength=batch * n_g).to(f64)
-    sum_pred_sq = (pred_sizes * pred_sizes).view(batch, n_p).sum(1)
-    sum_gt_sq = (gt_sizes * gt_sizes).view(batch, n_g).sum(1)
-    n = valid.sum(1).to(f64)
-
-    # Ordered pair counts exactly as sklearn.metrics.cluster.pair_confusion_matrix.
-    # All of them are integers below 2**53 for P < 9.4e7, hence exact in float64.
-    tp = sum_sq - n
-    fp = sum_pred_sq - sum_sq  # same predicted cluster, different gt cluster
-    fn = sum_gt_sq - sum_sq  # same gt cluster, different predicted cluster
-    tn = n * n - fp - fn - sum_sq
-    agree = (fp == 0) & (fn == 0)  # sklearn: "empty data or full agreement" -> 1.0
-    denom = (tp + fn) * (fn + tn) + (tp + fp) * (fp + tn)
-    score = 2.0 * (tp * tn - fn * fp) / torch.where(agree, torch.ones_like(denom), denom)
-    score = torch.where(agree, torch.ones_like(score), score)
-    return torch.where(n == 0, torch.full_like(score, float("nan")), score)
-
-
 def ari(pred: Tensor, gt: Tensor, ignore: Tensor | None = None) -> Tensor:
     """Adjusted Rand index per batch row over the pixels not ignored.
 
@@ -148,7 +107,7 @@ def ari(pred: Tensor, gt: Tensor, ignore: Tensor | None = None) -> Tensor:
         valid = torch.ones_like(pred, dtype=torch.bool)
     else:
         valid = ~ignore.reshape(batch, -1)
-    return _ari_rows(pred, gt, valid)
+    return ari_rows(pred, gt, valid)
 
 
 def ari_score(pred: Tensor, gt: Tensor) -> Tensor:
