@@ -1,4 +1,4 @@
-"""Training configs and their registry: ``TrainConfig``, scales, presets and the cpu recipe.
+"""Training configs: ``TrainConfig``, the configs of a scale and preset, and the config key.
 
 Where this sits: below ``svorf.train`` (the loop) and ``svorf.checkpoint`` (which saves
 these configs as JSON dicts in every checkpoint); beside ``svorf.config``, which does the
