@@ -30,8 +30,7 @@ def entry_point() -> tuple[type, Any]:
         from generators.pipeline import GenerateConfig, generate_dataset
     except ImportError as err:
         raise DatasetUnavailable(
-            f"the generator cannot be imported ({err}); use --data-source synthetic for a "
-            "stand-in"
+            f"the generator cannot be imported ({err}); use --data-source synthetic for a stand-in"
         ) from err
     return GenerateConfig, generate_dataset
 

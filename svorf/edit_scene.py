@@ -105,7 +105,7 @@ def read_manip_truth(
     meta = read_json(lay.scene_json(scene))
     rec = meta.get("manipulation")
     if not isinstance(rec, dict):
-        raise ValueError(
+        raise ValueError(  # noqa: TRY004 - a data problem, not a wrong argument type
             f"{lay.scene_json(scene)}: no 'manipulation' record; make the data with "
             "`generate --split manip`"
         )
