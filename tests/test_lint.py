@@ -1,5 +1,6 @@
-"""``ruff check`` over the project's packages and tests (the ``[tool.ruff]`` configuration
-of pyproject.toml): lint runs with the test suite, so CI fails on a new finding.
+"""``ruff check`` and ``ruff format --check`` over the project's packages and tests (the
+``[tool.ruff]`` configuration of pyproject.toml): lint runs with the test suite, so CI
+fails on a new finding or an unformatted file.
 
 Skipped only where ruff is not installed (it is in the ``test`` extra: ``pip install -e
 .[test]``).
@@ -41,3 +42,20 @@ def test_ruff_check_passes():
         timeout=300,
     )
     assert proc.returncode == 0, f"ruff check found problems:\n{proc.stdout}{proc.stderr}"
+
+
+def test_ruff_format_is_clean():
+    ruff = _ruff()
+    if ruff is None:
+        pytest.skip("ruff is not installed (pip install -e .[test])")
+    proc = subprocess.run(
+        [*ruff, "format", "--check", "--no-cache", *LINTED],
+        cwd=ROOT,
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, (
+        f"ruff format would change files (run `ruff format`):\n{proc.stdout}{proc.stderr}"
+    )
