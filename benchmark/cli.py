@@ -83,14 +83,14 @@ def _parser() -> argparse.ArgumentParser:
         metavar="M",
         help="training wall-clock budget per model in minutes (evaluation and checkpoint "
         "writes excluded); without --steps the budget alone stops training. Part of the "
-        "model cache key; table protocols only",
+        "model cache key; table protocols and editing",
     )
     r.add_argument(
         "--datasets",
         default=None,
         metavar="A[,B]",
-        help="table protocols: keep only these test datasets (e.g. clevr567); the report "
-        "notes the ones left out",
+        help="table protocols and editing: keep only these test datasets (e.g. clevr567); "
+        "the report notes the ones left out",
     )
     r.add_argument(
         "--lpips-weights",
@@ -103,9 +103,10 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--no-train",
         action="store_true",
-        help="table protocols: train nothing; score only the rows whose models an earlier "
-        "run with the same settings (--out, --scale, --seed, --train-minutes) trained, the "
-        "others stay null with the reason 'not_trained'",
+        help="table protocols and editing: train nothing; score only the rows whose models "
+        "an earlier run of any of these protocols with the same settings (--out, --scale, "
+        "--seed, --steps, --train-minutes) trained, the others stay null with the reason "
+        "'not_trained'",
     )
     r.add_argument(
         "--backend",
@@ -172,15 +173,24 @@ def _device(name: str) -> str:
 
 def _run(args: argparse.Namespace) -> int:
     from benchmark.context import Context
-    from benchmark.protocols import TABLE_PROTOCOLS, get_protocol
+    from benchmark.protocols import MODEL_PROTOCOLS, TABLE_PROTOCOLS, get_protocol
 
     fn = get_protocol(args.name)
     only = None
     if args.datasets is not None:
         only = [d.strip() for d in args.datasets.split(",") if d.strip()]
-    table_only = (
+    model_only = (
         ("--datasets", only),
         ("--train-minutes", args.train_minutes),
+        ("--no-train", True if args.no_train else None),
+    )
+    for flag, value in model_only:
+        if value is not None and args.name not in MODEL_PROTOCOLS:
+            raise ValueError(
+                f"{flag} applies to the protocols that train models "
+                f"({', '.join(MODEL_PROTOCOLS)}), not to {args.name!r}"
+            )
+    table_only = (
         ("--backend", None if args.backend == "local" else args.backend),
         ("--address", args.address),
         ("--show-config", True if args.show_config else None),
@@ -251,8 +261,9 @@ def config_lines(ctx: Context, jobs: list[ModelJob]) -> list[str]:
 
 def summary_lines(report: dict[str, Any], path: str | os.PathLike) -> list[str]:
     """What ``benchmark run`` prints at the end, each thing once: the status line, the
-    verdicts (a model row that appears in two tables has one verdict), the models, the
-    failed rows, the dataset folder used, and the paths of ``report.json`` and
+    verdicts (a model row that appears in two tables has one verdict), the models (and
+    which were reused from the cache), the failed and the not-trained rows, the dataset
+    folder used (and which splits it generated), and the paths of ``report.json`` and
     ``index.html`` (last, so they are where the eye lands)."""
     path = Path(path)
     head = (
@@ -269,10 +280,13 @@ def summary_lines(report: dict[str, Any], path: str | os.PathLike) -> list[str]:
             f"  {m['variant']} on {m['train_dataset']}: {b.get('steps_done')} steps, "
             f"{m['train_wall_s'] / 60.0:.1f} min training"
             + (f", stopped by {b['stopped_by']}" if b.get("stopped_by") else "")
+            + (f" (reused run {m['run_key']})" if m.get("reused") else "")
         )
     for r in report["rows"]:
         if r.get("failed"):
             lines.append(f"FAILED row {r['table']} / {r['model']} / {r['dataset']}: {r['failed']}")
+        elif any(str(v).startswith("not_trained") for v in r.get("null_reasons", {}).values()):
+            lines.append(f"not trained (--no-train): {r['table']} / {r['model']} / {r['dataset']}")
     data = _data_line(report.get("datasets", []))
     if data:
         lines.append(data)

@@ -42,6 +42,7 @@ from benchmark.log import log
 from benchmark.metrics import lpips_weight_candidates
 from benchmark.report import new_report, stable_hash, write_report
 from benchmark.scales import ScaleSettings, get_scale
+from scenefmt.cli_util import did_you_mean
 
 __all__ = ["BACKENDS", "BUDGET_STEP_CAP", "Context", "ModelRecord"]
 
@@ -206,6 +207,37 @@ class Context:
         self.t0 = time.perf_counter()
 
     # ------------------------------------------------------------------ data
+
+    def select_datasets(self, known: list[str] | tuple[str, ...]) -> tuple[list[str], list[str]]:
+        """Apply ``--datasets`` (:attr:`only_datasets`) to a protocol's test datasets.
+
+        Args:
+            known: the protocol's test datasets, in its order.
+
+        Returns:
+            ``(kept, left_out)``, both in the order of ``known``; everything is kept
+            without ``--datasets``.
+
+        Raises:
+            ValueError: ``--datasets`` names none, or a name that is not in ``known``
+                (one line: "did you mean", and the valid names). Raised before any
+                dataset is generated.
+        """
+        known = list(dict.fromkeys(known))
+        if self.only_datasets is None:
+            return known, []
+        if not self.only_datasets:
+            raise ValueError(
+                f"--datasets: no dataset name (none given); choose from {', '.join(known)}"
+            )
+        unknown = [d for d in self.only_datasets if d not in known]
+        if unknown:  # the first one, with "did you mean" and the valid names
+            raise ValueError(
+                f"--datasets: protocol {self.protocol!r} has no test dataset {unknown[0]!r}"
+                f"{did_you_mean(unknown[0], known)} (choose from {', '.join(known)})"
+            )
+        keep = set(self.only_datasets)
+        return [d for d in known if d in keep], [d for d in known if d not in keep]
 
     def dataset(self, preset: str, split: str) -> DatasetInfo:
         """The split folder (generated if missing), timed under ``data``."""

@@ -41,7 +41,6 @@ from benchmark.rows import (
     unavailable_row,
     verdicts_for,
 )
-from scenefmt.cli_util import did_you_mean
 
 __all__ = [
     "BACKENDS",
@@ -71,21 +70,11 @@ def _filter_datasets(
         ValueError: a name that is not a test dataset of this protocol (one line,
             naming the valid ones).
     """
+    kept, left_out = ctx.select_datasets([s.dataset for s in measured])
     if ctx.only_datasets is None:
         return measured, None, []
-    known = list(dict.fromkeys(s.dataset for s in measured))
-    unknown = [d for d in ctx.only_datasets if d not in known]
-    if not ctx.only_datasets:
-        raise ValueError(
-            f"--datasets: no dataset name (none given); choose from {', '.join(known)}"
-        )
-    if unknown:  # the first one, with "did you mean" and the valid names
-        raise ValueError(
-            f"--datasets: protocol {ctx.protocol!r} has no test dataset {unknown[0]!r}"
-            f"{did_you_mean(unknown[0], known)} (choose from {', '.join(known)})"
-        )
-    keep = set(ctx.only_datasets)
-    return [s for s in measured if s.dataset in keep], keep, [d for d in known if d not in keep]
+    keep = set(kept)
+    return [s for s in measured if s.dataset in keep], keep, left_out
 
 
 def planned_models(ctx: Context, measured: list[MeasuredRow]) -> list[ModelJob]:

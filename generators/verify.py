@@ -42,10 +42,12 @@ from scenefmt import (
     uorf_mask_from_instances,
 )
 
-#: uORF loader suffixes that are not views (``data/multiscenes_dataset.py``).
+#: The file-name endings uORF's loaders drop from ``glob('*.png')`` (KovenYu/uORF
+#: ``data/multiscenes_dataset.py`` and ``data/multiscenes_manip_dataset.py``, the same
+#: seven); every other PNG in a split folder is read as a view.
 UORF_NON_VIEW_SUFFIXES = (
     "_mask.png", "_mask_for_moving.png", "_mask_for_bg.png", "_mask_for_providing_bg.png",
-    "_moved.png", "_changed.png", "_providing_bg.png", "_changed_mask.png", "_fg.png", "_bg_mask.png",
+    "_moved.png", "_changed.png", "_providing_bg.png",
 )  # fmt: skip
 
 

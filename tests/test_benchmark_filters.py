@@ -83,7 +83,7 @@ def test_bad_filter_or_budget_is_a_one_line_error_before_any_work(tmp_path, caps
 
 def test_filter_and_budget_are_refused_for_protocols_without_a_dataset_axis(tmp_path, capsys):
     assert _run(tmp_path, "--datasets", "clevr567", protocol="stability") == 2
-    assert "applies to the table protocols" in capsys.readouterr().err
+    assert "applies to the protocols that train models" in capsys.readouterr().err
 
 
 def test_train_minutes_stops_on_the_budget_is_in_the_cache_key_and_the_report(

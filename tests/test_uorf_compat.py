@@ -19,19 +19,25 @@ from PIL import Image
 from generators.presets import get_preset
 from generators.sampling import make_scene
 from generators.spec import RenderSettings
-from generators.testing import write_raycast_split
+from generators.testing import write_raycast_manip_split, write_raycast_split
+from generators.verify import UORF_NON_VIEW_SUFFIXES
 from generators.writer import ViewImages, write_scene
 from scenefmt import (
     MASK_BG_LEVEL,
     MASK_SENTINEL_LEVEL,
+    ManipLayout,
     SplitLayout,
     read_instances,
     uorf_mask_from_instances,
     write_mask,
 )
 
-_UORF_SUFFIXES = ("_mask", "_mask_for_moving", "_moved", "_changed", "_mask_for_bg",
-                  "_mask_for_providing_bg", "_changed_mask")  # fmt: skip
+#: The suffixes whose ``*{suffix}.png`` files uORF's loaders subtract from ``glob('*.png')``,
+#: in the order of their subtraction (``MultiscenesDataset.__init__``; the manipulation
+#: loader ``MultiscenesManipDataset`` subtracts the same seven). Every other PNG in the
+#: folder is a view.
+_UORF_SUFFIXES = ("_mask", "_mask_for_moving", "_moved", "_changed", "_providing_bg",
+                  "_mask_for_bg", "_mask_for_providing_bg")  # fmt: skip
 
 
 def uorf_filenames(root: Path, n_scenes: int) -> list[list[str]]:
@@ -122,6 +128,21 @@ def test_glob_and_grouping_find_exactly_our_views(split):
         assert [Path(f).name for f in files] == [layout.rgb(s, v).name for v in range(4)]
     # nothing of ours (instances, depth) is picked up as a view
     assert not any("instances" in f or "depth" in f for g in groups for f in g)
+
+
+def test_glob_and_grouping_find_exactly_our_views_in_a_manipulation_split(tmp_path):
+    """The variants (``_moved``, ``_changed``, ``_providing_bg``) and their masks are not
+    views; a suffix missing from the list above would make them views here."""
+    root = write_raycast_manip_split(tmp_path / "manip", "clevr567", n=2, resolution=32)
+    layout = ManipLayout(root)
+    assert any(root.glob("*_providing_bg.png"))
+    for s, files in enumerate(uorf_filenames(root, 2)):
+        assert [Path(f).name for f in files] == [layout.rgb(s, v).name for v in range(4)]
+
+
+def test_verify_skips_exactly_the_pngs_uorf_skips():
+    """``generate verify`` flags every other PNG as a stray view, as uORF would read it."""
+    assert set(UORF_NON_VIEW_SUFFIXES) == {f"{s}.png" for s in _UORF_SUFFIXES}
 
 
 def test_second_lowest_grey_is_background_and_fg_matches_instances(split):

@@ -17,7 +17,13 @@ from pathlib import Path
 from benchmark.context import Context
 from scenefmt.cli_util import choose
 
-__all__ = ["PROTOCOLS", "TABLE_PROTOCOLS", "NotImplementedProtocol", "get_protocol"]
+__all__ = [
+    "MODEL_PROTOCOLS",
+    "PROTOCOLS",
+    "TABLE_PROTOCOLS",
+    "NotImplementedProtocol",
+    "get_protocol",
+]
 
 
 class NotImplementedProtocol(NotImplementedError):
@@ -48,9 +54,14 @@ PROTOCOLS: dict[str, Callable[[Context], Path]] = {
 }
 
 
-#: Protocols made of paper tables (``run_table_protocol``): they train models and have a
-#: dataset axis, so ``--datasets`` and ``--train-minutes`` apply to them.
+#: Protocols made of paper tables (``run_table_protocol``); ``--backend ray``,
+#: ``--address`` and ``--show-config`` apply to them only.
 TABLE_PROTOCOLS: tuple[str, ...] = ("segmentation", "nvs", "ablation", "generalization")
+
+#: Protocols that train models (through ``Context.model``, one cache shared by all of
+#: them) and have a dataset axis: ``--datasets``, ``--train-minutes`` and ``--no-train``
+#: apply to them, and a model one of them trained is reused by the others.
+MODEL_PROTOCOLS: tuple[str, ...] = (*TABLE_PROTOCOLS, "editing")
 
 
 def get_protocol(name: str) -> Callable[[Context], Path]:

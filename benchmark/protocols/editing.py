@@ -1,8 +1,9 @@
 """The ``editing`` protocol: scene editing measured against re-rendered ground truth.
 
 Where this sits: ``benchmark run editing`` -> :func:`run_editing`. It trains (or reuses,
-through :class:`benchmark.context.Context`'s cache) sVORF and its density-weighted-
-composition ablation on each preset's training split, generates the preset's
+through :class:`benchmark.context.Context`'s model cache, ``<out>/runs/<key>/``, shared with
+the table protocols) sVORF and its density-weighted-composition ablation on each preset's
+training split, generates the preset's
 manipulation split (``generate --split manip``: per scene one object moved by a recorded
 offset, and the scene with another scene's background, every variant re-rendered by
 Cycles), and scores the edits the way uORF does (KovenYu/uORF
@@ -21,6 +22,13 @@ Cycles), and scores the edits the way uORF does (KovenYu/uORF
 
 All views are scored (view 0 included), as uORF's manipulation test does. Scenes whose
 moved object is not visible in view 0 have no move (counted in the row's ``n_scenes``).
+
+The run options of the table protocols apply: ``--datasets`` keeps some of
+:func:`editing_datasets`, ``--train-minutes`` (with ``--steps`` and ``--seed``) is part of the
+model key, so ``benchmark run segmentation`` and ``benchmark run editing`` with the same
+``--out``, ``--scale``, ``--seed``, ``--steps`` and ``--train-minutes`` use the same trained
+sVORF; ``--no-train`` trains nothing and leaves the rows of untrained models null with the
+reason ``not_trained``.
 Presets without rooms have one background for every scene, so their background edit is
 scored against a "changed" view that equals the original: the report says so.
 """
@@ -145,6 +153,28 @@ def _row(table, model, dataset, source, variant, metrics, reasons, n, extra) -> 
     }  # fmt: skip
 
 
+def _null_rows(name, variant, dataset, reason, extra) -> list[dict[str, Any]]:
+    """One row per edit table with every metric null for ``reason``."""
+    return [
+        _row(table, name, dataset, "measured", variant, dict.fromkeys(EDIT_METRICS),
+             dict.fromkeys(EDIT_METRICS, reason[:300]), 0, extra)
+        for table in EDIT_TABLES.values()
+    ]  # fmt: skip
+
+
+def _models_note(ctx: Context) -> str | None:
+    """Which models this run trained and which it found in the cache (by run key)."""
+    if not ctx.models:
+        return None
+    parts = [
+        f"{r.job.variant} on {r.job.train_preset} (run {r.key}): "
+        + ("reused, trained earlier with the same key under this --out" if r.reused
+           else "trained in this run")
+        for r in ctx.models.values()
+    ]  # fmt: skip
+    return "Models: " + "; ".join(parts) + "."
+
+
 def _beats(edit: dict[str, Any], floor: dict[str, Any]) -> dict[str, bool | None]:
     out: dict[str, bool | None] = {}
     for m, hi in _HIGHER.items():
@@ -186,9 +216,16 @@ def run_editing(ctx: Context) -> Path:
     rows: list[dict[str, Any]] = []
     figures: list[str] = []
     failed: list[str] = []
+    not_trained: list[str] = []
     verdict_notes: list[str] = []
+    datasets, left_out = ctx.select_datasets(editing_datasets(ctx.scale))  # before any work
+    if left_out:
+        ctx.notes.append(
+            f"Datasets left out by --datasets {','.join(ctx.only_datasets or ())}: "
+            f"{', '.join(left_out)} (no rows of theirs are in this report)."
+        )
     ctx.report_dir.mkdir(parents=True, exist_ok=True)
-    for dataset in editing_datasets(ctx.scale):
+    for dataset in datasets:
         try:
             if ctx.data_source != "generator":
                 raise DatasetUnavailable(
@@ -199,18 +236,22 @@ def run_editing(ctx: Context) -> Path:
         except (DatasetUnavailable, ValueError) as err:
             why = f"dataset_unavailable: {err}"[:300]
             failed.append(f"{dataset}: {err}")
-            for table in EDIT_TABLES.values():
-                for name, variant in EDITING_MODELS:
-                    rows.append(_row(table, name, dataset, "measured", variant,
-                                     dict.fromkeys(EDIT_METRICS), dict.fromkeys(EDIT_METRICS, why),
-                                     0, {}))  # fmt: skip
+            for name, variant in EDITING_MODELS:
+                rows.extend(_null_rows(name, variant, dataset, why, {}))
             continue
         for name, variant in EDITING_MODELS:
             job = ModelJob(variant, dataset)
             try:
                 rec = ctx.model(job, train=not ctx.no_train)
-                if rec is None:
-                    raise RuntimeError("--no-train: no finished run of this model")
+                if rec is None:  # --no-train and no finished cached run (as the tables)
+                    why = (
+                        f"--no-train: no finished run of model {variant} on {dataset} with "
+                        "these settings; run the same command without --no-train to train it"
+                    )
+                    not_trained.append(f"{name} / {dataset}")
+                    rows.extend(_null_rows(name, variant, dataset, f"not_trained: {why}",
+                                           {"train_dataset": f"{dataset}/train"}))  # fmt: skip
+                    continue
                 ekey = stable_hash({"v": EDIT_EVAL_VERSION, "model": rec.key,
                                     "test": test.fingerprint, "max": ctx.settings.eval_scenes,
                                     "lpips": ctx.lpips_available()})  # fmt: skip
@@ -227,11 +268,7 @@ def run_editing(ctx: Context) -> Path:
             except Exception as err:  # noqa: BLE001 - one failing model must not lose the others
                 why = f"{type(err).__name__}: {err}".splitlines()[0]
                 failed.append(f"{name} / {dataset}: {why}")
-                for table in EDIT_TABLES.values():
-                    rows.append(_row(table, name, dataset, "measured", variant,
-                                     dict.fromkeys(EDIT_METRICS),
-                                     dict.fromkeys(EDIT_METRICS, f"failed: {why}"[:300]), 0,
-                                     {"failed": why}))  # fmt: skip
+                rows.extend(_null_rows(name, variant, dataset, f"failed: {why}", {"failed": why}))
                 continue
             for edit, table in EDIT_TABLES.items():
                 per = res["per_scene"][edit]
@@ -270,6 +307,15 @@ def run_editing(ctx: Context) -> Path:
     if failed:
         report["status"] = "partial"
         ctx.notes.insert(0, "Rows without numbers: " + "; ".join(failed))
+    if not_trained:
+        report["status"] = "partial"
+        ctx.notes.append(
+            "Rows not trained in this run (--no-train; metrics null, reason 'not_trained'): "
+            + "; ".join(not_trained)
+        )
+    models = _models_note(ctx)
+    if models:
+        ctx.notes.append(models)
     ctx.notes.extend(verdict_notes)
     ctx.notes.append(
         "Every view is scored (view 0, the encoder's input, included), as uORF's manipulation "
