@@ -6,4 +6,8 @@ Data flow: datasets (``benchmark.datasets`` -> generator or synthetic) -> models
 ``benchmark.runner``, with the run context and caches in ``benchmark.context``, training
 and evaluation jobs in ``benchmark.jobs`` and rows in ``benchmark.rows``)
 -> schema-validated ``report.json`` + figures + ``index.html``.
+
+The measuring and experiment tools of the model and the generator (speed of each model
+knob, the cpu recipe's time-budgeted training, the generator's baselines) are commands in
+``benchmark.tools``, which imports the libraries and no other module of this package.
 """

@@ -47,7 +47,7 @@ from scenefmt.cli_util import did_you_mean
 __all__ = ["BACKENDS", "BUDGET_STEP_CAP", "Context", "ModelRecord"]
 
 #: Step limit of a run with a wall-clock budget (``--train-minutes``) and no ``--steps``:
-#: the budget is what stops it (as in ``python -m svorf.recipe train-eval --minutes``).
+#: the budget is what stops it (as in ``python -m benchmark.tools.recipe train-eval --minutes``).
 BUDGET_STEP_CAP = 1_000_000
 
 #: Where a table protocol's jobs run (``--backend``).

@@ -127,8 +127,8 @@ SCALES: dict[str, ScaleSettings] = {
             (
                 "cpu: 64x64 renders, 240 training scenes (400 for Room-Diverse), 50 test "
                 "scenes, the svorf 'cpu' model; CLEVR-567-family models train with the cpu "
-                "recipe (svorf.recipe.recipe_configs, docs/notes/cpu_recipe.md), Room models with "
-                "svorf's cpu schedule (a 2-core machine, hours per protocol)."
+                "recipe (svorf.registry, docs/notes/cpu_recipe.md), Room models with svorf's cpu "
+                "schedule (a 2-core machine, hours per protocol)."
             ),
         ),
     ),

@@ -1,6 +1,6 @@
 """Adjusted Rand index (ARI) of label maps, equal to ``sklearn.metrics.adjusted_rand_score``.
 
-Where this sits: the one ARI of the project. ``svorf.recipe`` scores its held-out
+Where this sits: the one ARI of the project. ``benchmark.tools.recipe`` scores its held-out
 segmentation with it during training, and ``benchmark.metrics.segmentation`` (ARI,
 FG-ARI, NV-ARI, ARI*, FG-ARI* of the reports) checks its inputs and calls it through the
 benchmark's adapter. Label maps in, float64 scores out; nothing here knows about models.

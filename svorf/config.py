@@ -158,7 +158,7 @@ class ModelConfig:
     The background slot is never masked."""
 
     # ---- speed knobs (all off at paper scale, tolerances in tests/test_speed_knobs.py,
-    # speeds from ``python -m svorf.speedbench``) ----
+    # speeds from ``python -m benchmark.tools.speedbench``) ----
     bf16_autocast: bool | str = False
     """Run the hypernetwork, the per-point MLPs and the composition under bfloat16 autocast
     (on CPUs with AVX-512 BF16 / AMX the matmuls are faster and every activation is half the
@@ -166,8 +166,8 @@ class ModelConfig:
     cumulative sums), importance sampling and the connectivity loss stay float32. Off =
     float32 everywhere (paper). ``"auto"``: on only where the device has native bf16
     (:func:`bf16_native`). On a CPU without it (e.g. AVX2 only) torch emulates bf16 and a
-    cpu-scale training step was measured 3-5x *slower* (``python -m svorf.speedbench``),
-    so ``"auto"`` is what the ``cpu`` scale ships."""
+    cpu-scale training step was measured 3-5x *slower* (``python -m
+    benchmark.tools.speedbench``), so ``"auto"`` is what the ``cpu`` scale ships."""
     fg_box: float | None = None
     """If set, foreground (object) fields are evaluated only inside [-fg_box, fg_box]^3 and
     have density 0 outside, where they are also left out of the composition (the background
@@ -241,8 +241,8 @@ class ModelConfig:
     first-layer weights of the higher ones are zero for the last slot), so it can paint
     only smooth colour and density: detail the size of a small object must come from a
     foreground slot instead of being painted onto the floor. Measured on the cpu recipe
-    (``python -m svorf.recipe diagnose``): most failures are small objects left to the
-    background slot. A prior for plain CLEVR floors, not for textured rooms. None = the
+    (``python -m benchmark.tools.recipe diagnose``): most failures are small objects left to
+    the background slot. A prior for plain CLEVR floors, not for textured rooms. None = the
     background sees every frequency (paper)."""
     comp_temperature: float = 1.0
     """Temperature T of the slot-guided composition: m = softmax_k(logits / T). T < 1

@@ -23,8 +23,8 @@ gamma(x) and the slots; the composer is folded into per-scene matrices, exactly)
 object fields are evaluated only at the (point, slot) pairs that matter: unmasked slots,
 foreground slots inside ``fg_box``, and with ``slot_topk`` / ``slot_keep_mass`` the slots
 holding most of each point's m (``field.ObjectFields.eval_pairs``). ``bf16_autocast`` runs
-the matmuls in bfloat16 with float32 transmittance. ``python -m svorf.speedbench`` measures
-every knob; their tolerances are tested in tests/test_speed_knobs.py.
+the matmuls in bfloat16 with float32 transmittance. ``python -m benchmark.tools.speedbench``
+measures every knob; their tolerances are tested in tests/test_speed_knobs.py.
 
 At evaluation only (no gradient, deterministic samples), ``eval_early_stop`` stops marching
 a ray once its transmittance is below a threshold and ``eval_fine_min_weight`` evaluates fine

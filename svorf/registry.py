@@ -198,8 +198,8 @@ SCALES: dict[str, ScaleSpec] = {
             "n_fine": 16,
             "clip_to_box": True,
             # Speed knobs that pass their tolerance tests (tests/test_speed_knobs.py; speeds
-            # from `python -m svorf.speedbench --scale cpu`): bf16 matmuls/activations with
-            # float32 transmittance where the hardware has bf16 ("auto": 2x faster on an
+            # from `python -m benchmark.tools.speedbench --scale cpu`): bf16 matmuls and
+            # activations with float32 transmittance where the hardware has bf16 ("auto": 2x faster on an
             # AVX-512 BF16 CPU, 3-5x slower where torch emulates it on AVX2), and per point
             # only the slots holding 99% of the composition mass (colour error <= 0.01 per
             # point). Not on: slot_topk (top-2 of 8 keeps ~47% of the mass at

@@ -2,14 +2,14 @@
 
 Where this sits: below ``svorf.train`` (the loop) and ``svorf.checkpoint`` (which saves
 these configs as JSON dicts in every checkpoint); beside ``svorf.config``, which does the
-same for the model (``ModelConfig``, ``model_config``). :func:`run_configs` is the one
-place that decides the (model, train) configs of a scale and preset: ``svorf train``,
-``svorf.recipe`` and the benchmark's ``--scale`` all go through it, and :func:`config_key`
-names what a run learns (``svorf config`` prints it). What each scale, preset and recipe
-sets is data in ``svorf.registry``; the names :data:`PRESETS`, :data:`SCALES`,
-:data:`CPU_RECIPE` ... here are views of it. The learning-rate schedule (:func:`lr_at`)
-and the device choice (:func:`resolve_device`) live here too. Everything is re-exported
-by ``svorf.train``, the old home of these names.
+same for the model (``ModelConfig``, ``model_config``). :func:`run_configs` is the one place
+that decides the (model, train) configs of a scale and preset: ``svorf train``,
+``benchmark.tools.recipe`` and the benchmark's ``--scale`` all go through it, and
+:func:`config_key` names what a run learns (``svorf config`` prints it). What each scale,
+preset and recipe sets is data in ``svorf.registry``; the names :data:`PRESETS`,
+:data:`SCALES`, :data:`CPU_RECIPE` ... here are views of it. The learning-rate schedule
+(:func:`lr_at`) and the device choice (:func:`resolve_device`) live here too. Everything is
+re-exported by ``svorf.train``, the old home of these names.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ import torch
 from sklearn.metrics import adjusted_rand_score
 
 from benchmark.metrics import ari, fg_ari_score
-from svorf import recipe
+from benchmark.tools import recipe
 from svorf.ari import adjusted_rand_index, ari_rows
 
 

@@ -1,4 +1,4 @@
-"""generators.bench_baseline: generate vs the straightforward bpy script, at a tiny size.
+"""benchmark.tools.bench_baseline: generate vs the straightforward bpy script, at a tiny size.
 
 Every bpy render runs in a subprocess (``compare`` is only the driver): bpy must not be
 imported into the test process, or the Blender backend's lazy import later in the
@@ -11,7 +11,7 @@ import math
 
 import pytest
 
-from generators import bench_baseline
+from benchmark.tools import bench_baseline
 from generators.blender_backend import bpy_available
 from generators.spec import RenderSettings
 

@@ -207,7 +207,7 @@ def test_an_existing_split_with_other_render_settings_is_used_as_found_and_repor
 
 
 def test_cpu_scale_takes_the_recipe_for_the_clevr_family_only():
-    from svorf.recipe import recipe_configs
+    from benchmark.tools.recipe import recipe_configs
     from svorf.train import run_configs
 
     rm, rt = recipe_configs("clevr567")

@@ -19,10 +19,10 @@ import pytest
 
 from benchmark.cli import main as benchmark_main
 from benchmark.cli import summary_lines
+from benchmark.tools.recipe import main as recipe_main
 from generators.cli import main as generate_main
 from scenefmt.cli_util import OneLineParser, choose, did_you_mean, doc_summary, error_line
 from svorf.cli import main as svorf_main
-from svorf.recipe import main as recipe_main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -178,13 +178,13 @@ def test_recipe_help_is_whole_and_errors_one_line(tmp_path, capsys):
         )
         == 2
     )
-    assert "did you mean 'clevr567'?" in _one_line_error(capsys, "python -m svorf.recipe")
+    assert "did you mean 'clevr567'?" in _one_line_error(capsys, "python -m benchmark.tools.recipe")
     run = tmp_path / "run"
     run.mkdir()
     (run / "checkpoint.pt").write_bytes(b"x")
     argv = ["train-eval", "--data", "a", "--test", "b", "--out", str(run), "--minutes", "1"]
     assert recipe_main(argv) == 2
-    assert "--resume" in _one_line_error(capsys, "python -m svorf.recipe")
+    assert "--resume" in _one_line_error(capsys, "python -m benchmark.tools.recipe")
 
 
 # ------------------------------------------------------------------ benchmark
@@ -299,7 +299,9 @@ def test_help_texts_mention_nothing_outside_the_repository():
         assert not DANGLING.search(text), (name, DANGLING.search(text))
 
 
-@pytest.mark.parametrize("module", ["svorf.speedbench", "benchmark.scaling", "svorf.recipe"])
+@pytest.mark.parametrize(
+    "module", ["benchmark.tools.speedbench", "benchmark.scaling", "benchmark.tools.recipe"]
+)
 def test_tool_descriptions_are_whole_sentences(module):
     r = subprocess.run(
         [sys.executable, "-m", module, "--help"],

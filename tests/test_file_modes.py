@@ -71,8 +71,8 @@ def test_checkpoint_report_and_cache_files_get_0644_under_umask_022(umask, tmp_p
     umask(0o022)
     from assets_procedural.cache import atomic_write_bytes as cache_write
     from benchmark.report import write_json
+    from benchmark.tools.speedbench import _write_json_atomic
     from svorf.checkpoint import atomic_torch_save
-    from svorf.speedbench import _write_json_atomic
 
     atomic_torch_save({"x": 1}, tmp_path / "checkpoint.pt")
     write_json(tmp_path / "report.json", {"ok": True})

@@ -1,8 +1,10 @@
 """The project's layout rules, checked on the source (no imports run):
 
 - layers: a package imports only the packages below it (``scenefmt`` <- ``assets_procedural``
-  <- ``generators``; ``scenefmt`` <- ``svorf``; everything <- ``benchmark``), the format,
-  asset and generator packages import no torch, and only the Blender backend imports bpy;
+  <- ``generators``; ``scenefmt`` <- ``svorf``; the libraries <- ``benchmark.tools``, the
+  measuring and experiment tools, which import no other ``benchmark`` module; everything <-
+  the rest of ``benchmark``), the format, asset and generator packages import no torch, and
+  only the Blender backend imports bpy;
 - no private name (``_x``) of one module is used by another;
 - no import cycle between modules (imports inside functions count too);
 - no module over :data:`MAX_LINES` lines.
@@ -22,14 +24,22 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: Package -> the project packages it may import (besides itself).
+#: The libraries: the format, the assets, the generator and the model.
+LIBRARIES = frozenset({"scenefmt", "assets_procedural", "generators", "svorf"})
+#: Layer (a package, or a subpackage that is a layer of its own) -> the layers it may import
+#: (besides itself). A module belongs to the longest layer name that prefixes it.
 ALLOWED: dict[str, frozenset[str]] = {
     "scenefmt": frozenset(),
     "assets_procedural": frozenset({"scenefmt"}),
     "generators": frozenset({"scenefmt", "assets_procedural"}),
     "svorf": frozenset({"scenefmt"}),
-    "benchmark": frozenset({"scenefmt", "assets_procedural", "generators", "svorf"}),
+    # the measuring and experiment tools (speedbench, the recipe, the generator baselines):
+    # on top of the libraries, beside the benchmark; no library imports them
+    "benchmark.tools": LIBRARIES,
+    "benchmark": LIBRARIES | {"benchmark.tools"},
 }
+#: The top-level packages that are scanned.
+PACKAGES = tuple(dict.fromkeys(layer.split(".")[0] for layer in ALLOWED))
 #: Packages that must not import torch (they run where torch is not installed).
 NO_TORCH = frozenset({"scenefmt", "assets_procedural", "generators"})
 #: The only modules that may import Blender's Python modules.
@@ -91,11 +101,20 @@ def _init_reexport(comp: list[str], modules: dict[str, Path]) -> bool:
 
 def _module_files(root: Path) -> dict[str, Path]:
     mods = {}
-    for pkg in ALLOWED:
+    for pkg in PACKAGES:
         for path in sorted((root / pkg).rglob("*.py")):
             name = ".".join(path.relative_to(root).with_suffix("").parts)
             mods[name.removesuffix(".__init__")] = path
     return mods
+
+
+def _layer(name: str) -> str | None:
+    """The layer of :data:`ALLOWED` a dotted module name lies in (longest prefix), or None."""
+    parts = name.split(".")
+    for i in range(len(parts), 0, -1):
+        if ".".join(parts[:i]) in ALLOWED:
+            return ".".join(parts[:i])
+    return None
 
 
 def _owner(name: str, modules: dict[str, Path]) -> str | None:
@@ -143,6 +162,8 @@ def scan(root: Path) -> Findings:
         if n_lines > MAX_LINES:
             f.long.append(f"{path.relative_to(root)}: {n_lines} lines")
         pkg = mod.split(".")[0]
+        own_layer = _layer(mod)
+        assert own_layer is not None, mod
         aliases: dict[str, str] = {}  # local name -> the project module it is bound to
         imported: list[tuple[str, str | None, int]] = []  # (module, name or None, line)
         tree = ast.parse(src, filename=str(path))
@@ -167,8 +188,9 @@ def scan(root: Path) -> Findings:
         where = f"{path.relative_to(root)}"
         for name, what, line in imported:
             top = name.split(".")[0]
-            if top in ALLOWED and top != pkg and top not in ALLOWED[pkg]:
-                f.layering.append(f"{where}:{line}: {pkg} may not import {name}")
+            layer = _layer(name)
+            if layer is not None and layer != own_layer and layer not in ALLOWED[own_layer]:
+                f.layering.append(f"{where}:{line}: {own_layer} may not import {name}")
             if top == "torch" and pkg in NO_TORCH:
                 f.layering.append(f"{where}:{line}: {pkg} may not import torch")
             if top in BLENDER_TOPS and mod not in BLENDER_MODULES:
@@ -232,6 +254,16 @@ def _write(root: Path, files: dict[str, str]) -> None:
         ({"generators/a.py": "def f():\n    import torch\n"}, "layering", "torch"),
         ({"svorf/a.py": "import bpy\n"}, "layering", "bpy"),
         (
+            {"svorf/a.py": "from benchmark.tools import t\n", "benchmark/tools/t.py": ""},
+            "layering",
+            "svorf may not import benchmark.tools.t",
+        ),
+        (
+            {"benchmark/tools/t.py": "import benchmark.b\n", "benchmark/b.py": ""},
+            "layering",
+            "benchmark.tools may not import benchmark.b",
+        ),
+        (
             {"svorf/a.py": "from svorf.b import _hidden\n", "svorf/b.py": "_hidden = 1\n"},
             "private",
             "svorf.b._hidden",
@@ -278,3 +310,15 @@ def test_a_package_init_reexporting_its_modules_is_not_a_cycle(tmp_path):
         },
     )
     assert scan(tmp_path).cycles() == []
+
+
+def test_the_benchmark_may_import_its_tools(tmp_path):
+    _write(
+        tmp_path,
+        {
+            "svorf/__init__.py": "",
+            "benchmark/tools/t.py": "import svorf\n",
+            "benchmark/p.py": "from benchmark.tools import t\nimport svorf\n",
+        },
+    )
+    assert scan(tmp_path).layering == []

@@ -1,6 +1,6 @@
-"""The cpu recipe's levers (svorf/recipe.py, docs/notes/cpu_recipe.md): each new config field
-changes the computation it names, the paper scale has them all off, and the time-budgeted
-driver stops, resumes and evaluates."""
+"""The cpu recipe's levers (benchmark/tools/recipe.py, docs/notes/cpu_recipe.md): each new
+config field changes the computation it names, the paper scale has them all off, and the
+time-budgeted driver stops, resumes and evaluates."""
 
 from __future__ import annotations
 
@@ -11,11 +11,7 @@ import pytest
 import torch
 
 import svorf.train as train_mod
-from svorf.compose import SlotGuidedComposer, masked_softmax
-from svorf.config import ModelConfig, model_config
-from svorf.data import MultiViewDataset
-from svorf.model import SVORF
-from svorf.recipe import (
+from benchmark.tools.recipe import (
     RECIPE_LEVERS,
     adjusted_rand_index,
     make_eval_fn,
@@ -24,6 +20,10 @@ from svorf.recipe import (
     segmentation_metrics_basic,
     train_eval,
 )
+from svorf.compose import SlotGuidedComposer, masked_softmax
+from svorf.config import ModelConfig, model_config
+from svorf.data import MultiViewDataset
+from svorf.model import SVORF
 from svorf.synthetic import write_synthetic_split
 from svorf.train import TrainConfig, load_run, train, train_config
 
@@ -220,7 +220,7 @@ def test_bg_floor_slab_keeps_the_background_in_a_slab_under_the_object_region():
 def test_plot_subcommand_draws_runs_and_rejects_a_non_run(tmp_path, capsys):
     from PIL import Image
 
-    from svorf.recipe import main
+    from benchmark.tools.recipe import main
 
     run = tmp_path / "r"
     run.mkdir()
@@ -241,7 +241,7 @@ def test_plot_subcommand_draws_runs_and_rejects_a_non_run(tmp_path, capsys):
 
 
 def test_object_failures_classifies_lost_merged_and_own():
-    from svorf.recipe import object_failures, summarize_failures
+    from benchmark.tools.recipe import object_failures, summarize_failures
 
     gt = torch.tensor([[0, 1, 1, 2], [0, 3, 3, 4], [0, 0, 5, 5]])
     # slot 3 = background; objects 1 and 2 share slot 0 (merged), 3 is in slot 1 (own),
@@ -266,7 +266,7 @@ def test_object_failures_classifies_lost_merged_and_own():
 
 
 def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
-    from svorf.recipe import main
+    from benchmark.tools.recipe import main
 
     mcfg = model_config("smoke", num_slots=4)
     tcfg = train_config("smoke", steps=10_000, eval_every=0, ckpt_every=100)

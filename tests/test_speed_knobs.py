@@ -1,6 +1,6 @@
 """Speed knobs of ModelConfig: each changes results only within its stated
 tolerance, or not at all where it should be exact (svorf.field.eval_pairs, the folded
-composer, svorf.model slot selection, bf16 autocast, fg_box, svorf.speedbench).
+composer, svorf.model slot selection, bf16 autocast, fg_box, benchmark.tools.speedbench).
 
 Stated tolerances (checked here; measured values at cpu scale in the speedbench report):
 - folded composer (always on, not a knob) vs the paper-form reference: float32 precision
@@ -33,7 +33,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from svorf import speedbench
+from benchmark.tools import speedbench
 from svorf.config import model_config
 from svorf.field import HyperNetwork, SlotConditionedMLP, positional_encoding, sparse_tile_rows
 from svorf.model import SVORF, RenderOutput
@@ -563,7 +563,7 @@ def test_speedbench_report_table_and_json(tmp_path):
     )
     assert rc == 0
     rec = json.loads(out2.read_text())
-    from svorf.recipe import recipe_model_levers
+    from benchmark.tools.recipe import recipe_model_levers
 
     assert rec["base_overrides"]["slot_locality"] == recipe_model_levers()["slot_locality"]
     assert all(r["overrides"]["slot_locality"] for r in rec["variants"])

@@ -400,7 +400,7 @@ def test_cached_run_steps_are_the_steps_done_not_the_limit():
 
 def test_generator_curve(smoke):
     """Seconds per view against PSNR vs a high-sample render over samples, denoiser and
-    bounces (generators.bench_quality), masks and depth identical at every point."""
+    bounces (benchmark.tools.bench_quality), masks and depth identical at every point."""
     _, rep = smoke
     c = rep["curves"]["generator"]
     rows = [r for r in rep["rows"] if r["curve"] == "generator"]

@@ -39,7 +39,7 @@ Tables (rows):
    and the targets (>= 3x, >= 5x) as plain fields, never as measured values.
 4. ``speed_generator``: seconds per view of ``generate`` (a fresh command per worker
    count, :func:`benchmark.scaling.measure_generation`) and of a bare Cycles render of
-   the same views at the same settings (:func:`generators.bench_overhead.
+   the same views at the same settings (:func:`benchmark.tools.bench_overhead.
    bare_render_s_per_view`, 1 thread, render calls only); ``overhead_ratio`` =
    generate s/view (1 worker x 1 thread) / bare Cycles s/view; ``scaling_speedup`` per
    worker count. Needs Blender (``bpy``): otherwise, and with ``--data-source synthetic``,
@@ -96,8 +96,10 @@ from benchmark.report import RowStore
 from benchmark.rows import row_id
 
 __all__ = [
+    "BASELINE_CODE",
     "BASELINE_LABELS",
     "GENERATOR_BASELINE_TARGET",
+    "GENERATOR_TOOLS",
     "MEASURED_CODE",
     "PAPER_EPOCH_SCENES",
     "PAPER_RATIOS",
@@ -159,7 +161,7 @@ def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
             "baseline_options": {
                 k: v for k, v in options.to_dict().items() if k.startswith("baseline_")
             },
-            "code": code_fingerprint(("generators",)),
+            "code": code_fingerprint(BASELINE_CODE),
         },
     )
     rows = paper_rows("tab:time")
@@ -233,9 +235,20 @@ def run_speed(ctx: Context, options: SpeedOptions | None = None) -> Path:
     return ctx.finish(report)
 
 
+#: The generator's measuring tools that the generator rows and the script comparison run.
+GENERATOR_TOOLS: tuple[str, ...] = tuple(
+    f"benchmark/tools/{t}.py" for t in ("bench_overhead", "bench_baseline", "bench_quality")
+)
 #: Source whose change makes cached speed rows stale: the model, the generator and the
-#: worker that measures them (repository-relative; folders mean their ``*.py`` files).
-MEASURED_CODE: tuple[str, ...] = ("svorf", "generators", "benchmark/protocols/_speed_worker.py")
+#: code that measures them (repository-relative; folders mean their ``*.py`` files).
+MEASURED_CODE: tuple[str, ...] = (
+    "svorf",
+    "generators",
+    *GENERATOR_TOOLS,
+    "benchmark/protocols/_speed_worker.py",
+)
+#: The same for the script comparison's rows (the generator and its tools only).
+BASELINE_CODE: tuple[str, ...] = ("generators", *GENERATOR_TOOLS)
 
 
 def code_fingerprint(paths: tuple[str, ...] = MEASURED_CODE) -> str:

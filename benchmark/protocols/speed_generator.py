@@ -4,7 +4,7 @@ against a bare Cycles render and against a straightforward bpy script.
 Where this sits: :func:`benchmark.protocols.speed.run_speed` calls
 :func:`generator_rows` (seconds per view per worker count, overhead over bare Cycles,
 :func:`benchmark.scaling.measure_generation`) and :func:`baseline_rows` (the script
-comparison, :func:`generators.bench_baseline.compare`). Without Blender both make rows of
+comparison, :func:`benchmark.tools.bench_baseline.compare`). Without Blender both make rows of
 nulls with the reason.
 """
 
@@ -52,7 +52,8 @@ def _gen_row(model: str, metrics: dict[str, float | None], reason: str, **extra:
 def _bare_cycles(root: Path, threads: int) -> dict[str, Any]:
     """``bare_render_s_per_view`` in a fresh interpreter (bpy must not load in this one)."""
     code = (
-        "import json, sys; from generators.bench_overhead import bare_render_s_per_view as f; "
+        "import json, sys; "
+        "from benchmark.tools.bench_overhead import bare_render_s_per_view as f; "
         "print(json.dumps(f(sys.argv[1], None, int(sys.argv[2]))))"
     )
     proc = subprocess.run(
@@ -80,7 +81,7 @@ def generator_rows(ctx: Context, options: SpeedOptions) -> list[dict[str, Any]]:
     """``speed_generator`` rows: generate s/view per worker count, bare Cycles, overhead.
 
     Reuses :func:`benchmark.scaling.measure_generation` (one ``generate`` command per
-    worker count, 1 Cycles thread each) and :func:`generators.bench_overhead.
+    worker count, 1 Cycles thread each) and :func:`benchmark.tools.bench_overhead.
     bare_render_s_per_view` on the 1st count's output (1 thread, render calls only).
     Without Blender: one row of nulls saying why.
     """
@@ -148,7 +149,7 @@ def generator_rows(ctx: Context, options: SpeedOptions) -> list[dict[str, Any]]:
             build_s_per_scene=bare["build_s_per_scene"],
             note=(
                 f"{setting}; the same scene JSONs rendered by one BlenderSession, only the "
-                "bpy.ops.render.render calls timed (generators.bench_overhead)"
+                "bpy.ops.render.render calls timed (benchmark.tools.bench_overhead)"
             ),
         )
     )
@@ -163,8 +164,9 @@ BASELINE_LABELS: dict[str, str] = {
 
 
 def _compare_with_script(options: SpeedOptions, denoiser: str, out_root: Path) -> dict[str, Any]:
-    """:func:`generators.bench_baseline.compare` with the options' settings (a seam for tests)."""
-    from generators import bench_baseline
+    """:func:`benchmark.tools.bench_baseline.compare` with the options' settings (a seam for
+    tests)."""
+    from benchmark.tools import bench_baseline
     from generators.spec import RenderSettings
 
     samples = options.baseline_samples or RenderSettings.samples
@@ -179,7 +181,7 @@ def baseline_rows(ctx: Context, options: SpeedOptions) -> list[dict[str, Any]]:
     """``speed_generator`` rows: ``generate`` against the straightforward bpy script.
 
     One row per ``options.baseline_denoisers`` entry, each from one
-    :func:`generators.bench_baseline.compare` run (both sides fresh processes, one after
+    :func:`benchmark.tools.bench_baseline.compare` run (both sides fresh processes, one after
     the other, on the same scenes; PSNR of both against the same no-denoiser reference).
     ``baseline_speedup`` = script wall / ``generate`` wall. The issue's target applies to
     the ``factory`` script (a straightforward script switches the denoiser on and keeps

@@ -40,11 +40,11 @@ class SpeedOptions:
             reference of ``scaling_speedup`` and of ``overhead_ratio``).
         baseline_scenes, baseline_resolution, baseline_samples, baseline_ref_samples,
             baseline_psnr_scenes: ``generate`` against the straightforward bpy script
-            (:func:`generators.bench_baseline.compare`): scenes each side renders,
+            (:func:`benchmark.tools.bench_baseline.compare`): scenes each side renders,
             pixels, Cycles samples of both sides (None = the shipped default), samples
             of the no-denoiser reference, scenes compared with it.
         baseline_denoisers: one comparison per entry of
-            :data:`generators.bench_baseline.BASELINE_DENOISERS` (``factory``: the
+            :data:`benchmark.tools.bench_baseline.BASELINE_DENOISERS` (``factory``: the
             script keeps Blender's denoiser defaults; ``tuned``: it borrows
             ``generate``'s); empty = no comparison.
     """
@@ -92,7 +92,7 @@ class SpeedOptions:
                 f"SpeedOptions.baseline_psnr_scenes ({self.baseline_psnr_scenes}) must be <= "
                 f"baseline_scenes ({self.baseline_scenes})"
             )
-        from generators.bench_baseline import BASELINE_DENOISERS  # no bpy import
+        from benchmark.tools.bench_baseline import BASELINE_DENOISERS  # no bpy import
 
         bad = [d for d in self.baseline_denoisers if d not in BASELINE_DENOISERS]
         if bad:

@@ -9,11 +9,11 @@ Each knob is swept over a few settings; each setting is one point:
 - time: median wall time of one training step (forward + loss + backward of the scale's
   training batch shape, perturbed samples), over ``repeats`` repeats **interleaved** with
   every other point of the run (repeat r runs every point once, in turn), so the load of
-  other processes hits all points alike (the method of :mod:`svorf.speedbench`, whose
+  other processes hits all points alike (the method of :mod:`benchmark.tools.speedbench`, whose
   batch, step, error and pair-counting functions this module calls);
 - speed-up: the knob-free baseline's median / this point's median, same run;
 - error: the point's evaluation render (no jitter) against the knob-free model with the
-  same weights on the same rays (:func:`svorf.speedbench.render_errors`): rgb max / mean
+  same weights on the same rays (:func:`benchmark.tools.speedbench.render_errors`): rgb max / mean
   |diff| (colour units), depth mean |diff| (world units), slot_probs max |diff|;
 - ``within_tolerance``: every error within the bound stated in
   ``tests/test_speed_knobs.py`` (:data:`TOLERANCE`; slot_probs 3e-2 for combinations).
@@ -56,7 +56,7 @@ Layout: this module runs the protocol (:func:`run_tradeoff`) and re-exports the 
 names of its parts: each curve's module (:mod:`.tradeoff_step`, :mod:`.tradeoff_render`,
 :mod:`.tradeoff_training`, :mod:`.tradeoff_generator`), the fronts
 (:mod:`.tradeoff_pareto`) and the shared settings (:mod:`.tradeoff_common`). The step and
-render curves time their points with :func:`svorf.speedbench.time_interleaved`.
+render curves time their points with :func:`benchmark.tools.speedbench.time_interleaved`.
 """
 
 from __future__ import annotations
@@ -255,8 +255,8 @@ def run_tradeoff(ctx: Context) -> Path:
             f"Time: median of {settings.repeats} interleaved training steps (forward + loss + "
             f"backward, batch {batch[0]} scenes x {batch[1]} rays, perturbed samples) after "
             f"{settings.warmup} warm-up round(s); speed-up = the baseline's median / the point's "
-            "median in the same run. Inputs are svorf.speedbench's random images and rays, "
-            "not dataset scenes."
+            "median in the same run. Inputs are benchmark.tools.speedbench's random images and "
+            "rays, not dataset scenes."
         ),
         (
             "Error: the point's evaluation render vs the knob-free model with the same weights "

@@ -1,5 +1,5 @@
 """The ``tradeoff`` protocol's generator curve: Cycles seconds per view against the image
-error of the generator's render settings (:mod:`generators.bench_quality`).
+error of the generator's render settings (:mod:`benchmark.tools.bench_quality`).
 
 Where this sits: :func:`benchmark.protocols.tradeoff.run_tradeoff` calls
 :func:`measure_generator` (absent, with the reason, without bpy) and
@@ -63,7 +63,7 @@ def _generator_knob(overrides: dict[str, Any]) -> str:
 def measure_generator(
     ctx: Context, settings: TradeoffSettings
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """The generator curve: :func:`generators.bench_quality.run` over
+    """The generator curve: :func:`benchmark.tools.bench_quality.run` over
     :data:`GENERATOR_CANDIDATES` on the first ``settings.generator_scenes`` clevr567 test
     scenes at the scale's resolution, against a ``settings.generator_ref_samples``-sample
     reference render (no denoiser, 8 bounces) of the same views.
@@ -88,7 +88,7 @@ def measure_generator(
     if not bpy_available():
         info["absent"] = "bpy (Blender as a Python module) is not installed: no generator curve"
         return [], info
-    from generators import bench_quality
+    from benchmark.tools import bench_quality
 
     threads = settings.threads or 1
     with contextlib.redirect_stdout(sys.stderr):  # its per-candidate lines: progress only
@@ -153,7 +153,7 @@ def generator_curve(rows: list[dict[str, Any]], info: dict[str, Any]) -> dict[st
         ref,
         "Cycles render seconds per view (one pass per candidate, not interleaved) against the "
         "PSNR of the 8-bit sRGB image vs the high-sample reference render of the same view "
-        "(generators.bench_quality); the shipped default is generators.spec.RenderSettings() "
+        "(benchmark.tools.bench_quality); the shipped default is generators.spec.RenderSettings() "
         "at this resolution. masks_identical / depth_identical: the instance-id and planar "
         "depth passes equal the reference's exactly at that point.",
         noise,

@@ -200,7 +200,7 @@ def measure_render(
         (rows, scenes, shipped config): one report row per point, the default first.
     """
     from benchmark.evaluate import aggregate, score_scene
-    from svorf import speedbench
+    from benchmark.tools import speedbench
 
     shipped = ws.shipped if ws.shipped is not None else _shipped(ctx)
     points = render_points(shipped)

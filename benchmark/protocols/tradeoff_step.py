@@ -3,7 +3,7 @@ speed knob of the model, on each weight set.
 
 Where this sits: :func:`benchmark.protocols.tradeoff.run_tradeoff` builds the weight sets
 (:func:`weight_sets`) and their points (:func:`knob_points`), times them interleaved with
-:func:`svorf.speedbench.time_interleaved` and takes each point's render error against its
+:func:`benchmark.tools.speedbench.time_interleaved` and takes each point's render error against its
 weight set's knob-free model (:func:`measure`), then makes one row per point
 (:func:`step_row`) and a front per weight set (:func:`step_curves`).
 """
@@ -155,7 +155,7 @@ def knob_points(ws: WeightSet, scale: str) -> list[Point]:
 
 
 def _off_value(name: str) -> Any:
-    from svorf.speedbench import KNOBS_OFF
+    from benchmark.tools.speedbench import KNOBS_OFF
 
     return KNOBS_OFF[name]
 
@@ -163,7 +163,7 @@ def _off_value(name: str) -> Any:
 def knobs_off(cfg: Any) -> Any:
     """``cfg`` with every speed knob off; ``fg_box`` stays where the model was built with it
     (then it is part of the model, not a knob of it)."""
-    from svorf.speedbench import KNOBS_OFF
+    from benchmark.tools.speedbench import KNOBS_OFF
 
     off = dict(KNOBS_OFF)
     if cfg.fg_box is not None:
@@ -214,7 +214,7 @@ def steps_done(marker: dict[str, Any]) -> int:
 
 def weight_sets(ctx: Context, settings: TradeoffSettings) -> list[WeightSet]:
     """``init``, ``sharp-m`` (if ``settings.sharp``) and ``trained`` (if a cached run exists)."""
-    from svorf import speedbench
+    from benchmark.tools import speedbench
 
     base = knobs_off(adapter.model_config(ctx.scale, "clevr567", "full"))
     every = ("bf16_autocast", "slot_keep_mass", "slot_topk", "fg_box", "samples_per_ray")
@@ -294,7 +294,7 @@ def measure(
 ) -> list[dict[str, Any]]:
     """Time every point interleaved, then take each point's render error against the
     baseline of its weight set; returns one metrics dict per point (same order)."""
-    from svorf import speedbench
+    from benchmark.tools import speedbench
 
     dev = ctx.device
     models, counters = [], []

@@ -5,7 +5,7 @@ each view with a high-sample reference and with every candidate setting ->
 PSNR of the 8-bit sRGB images against the reference, seconds per view -> a table
 on stdout (and JSON with ``--json``).
 
-    python -m generators.bench_quality --scenes 2 --ref-samples 512
+    python -m benchmark.tools.bench_quality --scenes 2 --ref-samples 512
 """
 
 from __future__ import annotations
@@ -103,7 +103,9 @@ def run(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmark.tools.bench_quality", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--preset", default="clevr567")
     ap.add_argument("--scenes", type=int, default=2)
     ap.add_argument("--resolution", type=int, default=128)

@@ -1,22 +1,24 @@
 """Speed of a training step for each speed knob of ModelConfig, and each knob's error.
 
-Where it sits: a measuring tool beside the model (not used by training). It builds one model
-per variant (same weights), then times (a) forward + loss + backward of a batch like one
-training step (default 4 scenes x 256 rays, the cpu scale's) and (b) the per-point
-evaluation alone (hypernetwork, slot masks, object fields, composition at every sample,
-forward + backward), with the variants **interleaved** (repeat r runs every variant once, in
-turn), so that the load of other processes on a shared 2-core machine hits them alike; it
-reports medians and ratios to the model without any speed knob (``original``). It also reports, per
-variant, how far its evaluation render (no jitter, same weights, same rays) is from the
-knob-free model's: the time-vs-error pair of each knob; and, in a fresh subprocess per
-variant, the peak resident memory of a few training steps.
+Where it sits: a measuring tool of the model, in the benchmark's tools package (training
+does not use it; the ``tradeoff`` protocol times its curves with :func:`time_interleaved`,
+the project's one interleaved timing loop). It builds one model per variant (same weights),
+then times (a) forward + loss + backward of a batch like one training step (default 4 scenes
+x 256 rays, the cpu scale's) and (b) the per-point evaluation alone (hypernetwork, slot
+masks, object fields, composition at every sample, forward + backward), with the variants
+**interleaved** (repeat r runs every variant once, in turn), so that the load of other
+processes on a shared 2-core machine hits them alike; it reports medians and ratios to the
+model without any speed knob (``original``). It also reports, per variant, how far its
+evaluation render (no jitter, same weights, same rays) is from the knob-free model's: the
+time-vs-error pair of each knob; and, in a fresh subprocess per variant, the peak resident
+memory of a few training steps.
 
 Usage::
 
-    python -m svorf.speedbench --scale cpu [--repeats 7] [--json out.json] [--no-rss]
+    python -m benchmark.tools.speedbench --scale cpu [--repeats 7] [--json out.json] [--no-rss]
 
-``--recipe`` applies the cpu recipe's model levers (``svorf.recipe.RECIPE_LEVERS``) to
-every variant, so the knobs are timed on the model the recipe trains.
+``--recipe`` applies the cpu recipe's model levers (``benchmark.tools.recipe.RECIPE_LEVERS``)
+to every variant, so the knobs are timed on the model the recipe trains.
 
 Variants: ``original`` (every knob off and the composer in its paper form
 ``SlotGuidedComposer.logits_reference``: the model before any speed work, the reference of every
@@ -57,11 +59,10 @@ import torch.nn.functional as F
 
 from scenefmt import mkstemp_beside
 from scenefmt.cli_util import DefaultsFormatter, doc_summary
-
-from .compose import masked_softmax
-from .config import ModelConfig, bf16_native, model_config
-from .model import SVORF
-from .render import clip_rays_to_box, sample_stratified
+from svorf.compose import masked_softmax
+from svorf.config import ModelConfig, bf16_native, model_config
+from svorf.model import SVORF
+from svorf.render import clip_rays_to_box, sample_stratified
 
 # Every knob off: the paper's method at the scale's sizes.
 KNOBS_OFF: dict[str, Any] = {
@@ -312,7 +313,7 @@ def peak_rss_subprocess(scale: str, v: Variant, scenes: int, rays: int, threads:
         }
     )
     res = subprocess.run(
-        [sys.executable, "-m", "svorf.speedbench", "--_rss-worker", spec],
+        [sys.executable, "-m", "benchmark.tools.speedbench", "--_rss-worker", spec],
         capture_output=True,
         text=True,
         check=False,
@@ -453,7 +454,7 @@ def format_table(report: dict[str, Any]) -> str:
         f"{'RSS MB':>7s}"
     )
     title = (
-        f"svorf.speedbench scale={report['scale']} batch={report['batch']['scenes']}x"
+        f"benchmark.tools.speedbench scale={report['scale']} batch={report['batch']['scenes']}x"
         f"{report['batch']['rays']} rays, threads={report['threads']}, "
         f"repeats={report['repeats']} (interleaved, medians), torch {report['torch']}"
     )
@@ -497,7 +498,7 @@ def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m svorf.speedbench",
+        prog="python -m benchmark.tools.speedbench",
         description=doc_summary(__doc__),
         formatter_class=DefaultsFormatter,
     )
@@ -517,7 +518,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--recipe",
         action="store_true",
-        help="time the cpu recipe's model: its model levers (svorf.recipe.RECIPE_LEVERS: "
+        help="time the cpu recipe's model: its model levers (benchmark.tools.recipe.RECIPE_LEVERS: "
         "slot locality, foreground box, ...) under every variant",
     )
     ap.add_argument("--no-rss", action="store_true", help="skip the per-variant RSS subprocesses")
@@ -532,7 +533,7 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--{name} must be >= 1, got {getattr(a, name)}")
     variants = default_variants(a.scale, a.sharpen)
     if a.recipe:
-        from .recipe import recipe_model_levers
+        from benchmark.tools.recipe import recipe_model_levers
 
         levers = recipe_model_levers()
         for v in variants:  # a variant's own knob settings win over the recipe's

@@ -1,13 +1,13 @@
 """CPU-scale training recipe for sVORF: time-budgeted training with held-out
 segmentation metrics over wall-clock time, and the recipe's levers as config fields.
 
-Where it sits: on top of ``svorf.train.train`` (which it calls with ``max_wall_s`` and an
-``eval_fn``). Nothing here imports ``benchmark`` (svorf depends on ``scenefmt`` only):
-the segmentation metrics are a callable (:func:`make_eval_fn`), by default the ARI, FG-ARI
-and NV-ARI of this module (:func:`segmentation_metrics_basic`, from ``svorf.ari``, the
-project's one ARI that the benchmark scores with too; equal to
+Where it sits: a tool of the benchmark's tools package, on top of ``svorf.train.train``
+(which it calls with ``max_wall_s`` and an ``eval_fn``); it imports only ``svorf`` and
+``scenefmt``. The segmentation metrics are a callable (:func:`make_eval_fn`), by default
+the ARI, FG-ARI and NV-ARI of this module (:func:`segmentation_metrics_basic`, from
+``svorf.ari``, the project's one ARI that the benchmark scores with too; equal to
 ``benchmark.metrics.segmentation_metrics`` on those keys: tests/test_recipe.py), which
-the command line (``python -m svorf.recipe train-eval``) uses too.
+the command line (``python -m benchmark.tools.recipe train-eval``) uses too.
 
 The levers (every one a documented config field that the paper scale leaves off):
 
@@ -436,12 +436,12 @@ def plot_runs(runs: dict[str, str | Path], path: str | Path) -> Path:
     return path
 
 
-_PROG = "python -m svorf.recipe"
+_PROG = "python -m benchmark.tools.recipe"
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m svorf.recipe train-eval|diagnose|plot``; returns the exit status (a bad
-    command line prints one line ``python -m svorf.recipe: error: ...``, status 2)."""
+    """``python -m benchmark.tools.recipe train-eval|diagnose|plot``; returns the exit status (a bad
+    command line prints one line ``python -m benchmark.tools.recipe: error: ...``, status 2)."""
     from svorf.train import CHECKPOINT_NAME, PRESETS
 
     ap = OneLineParser(

@@ -19,7 +19,7 @@ three fresh subprocesses, each into its own split folder under ``out_root``:
 masks, instance ids and depth of ``generate/`` and ``naive/`` -> one JSON dict.
 The driver never imports bpy (tests call :func:`compare` in-process).
 
-    python -m generators.bench_baseline --preset clevr567 --n 20 --resolution 128 \\
+    python -m benchmark.tools.bench_baseline --preset clevr567 --n 20 --resolution 128 \\
         --ref-samples 512 --psnr-scenes 2 --json out.json
 """
 
@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 import scenefmt
-from generators.bench_quality import reference_settings
+from benchmark.tools.bench_quality import reference_settings
 from generators.pipeline import GenerateConfig, cpu_cores
 from generators.presets import Preset
 from generators.spec import RenderSettings, SceneSpec
@@ -300,7 +300,7 @@ def compare(
     stats_path.unlink(missing_ok=True)
     common = ["--preset", preset_name, "--n", str(n_scenes), "--resolution", str(resolution),
               "--seed", str(seed), "--samples", str(samples)]  # fmt: skip
-    me = [sys.executable, "-m", "generators.bench_baseline", *common]
+    me = [sys.executable, "-m", "benchmark.tools.bench_baseline", *common]
     try:
         load_before = _load()
         gen_cmd = [sys.executable, "-m", "generators.cli", *common[:-1], str(gen_samples),
@@ -347,7 +347,7 @@ def compare(
 
 def _evaluate(cfg: GenerateConfig, dirs: dict[str, Path], psnr_scenes: int) -> dict[str, Any]:
     """PSNR of both sides' PNGs against the reference; exact masks/ids/depth equality."""
-    from generators.bench_quality import psnr8
+    from benchmark.tools.bench_quality import psnr8
 
     nv = cfg.preset_obj().camera.n_views
     lay = {k: scenefmt.SplitLayout(d, n_views=nv) for k, d in dirs.items()}
@@ -410,7 +410,7 @@ def _subprocess_role(a: argparse.Namespace, cfg: GenerateConfig) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m generators.bench_baseline",
+    ap = argparse.ArgumentParser(prog="python -m benchmark.tools.bench_baseline",
                                  description=doc_summary(__doc__))  # fmt: skip
     ap.add_argument("--preset", default="clevr567", help="preset (its first split)")
     ap.add_argument("--n", type=int, default=20, help="scenes rendered by each side")

@@ -5,7 +5,7 @@ one ``BlenderSession`` (all cores) renders every view with the JSON's settings;
 only the ``bpy.ops.render.render`` calls are timed. Compare with the s/view that
 ``generate`` printed for the same split:
 
-    python -m generators.bench_overhead /tmp/g20 [--scenes 5]
+    python -m benchmark.tools.bench_overhead /tmp/g20 [--scenes 5]
 """
 
 from __future__ import annotations
@@ -43,7 +43,9 @@ def bare_render_s_per_view(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmark.tools.bench_overhead", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("root")
     ap.add_argument("--scenes", type=int, default=None)
     ap.add_argument("--threads", type=int, default=None)
