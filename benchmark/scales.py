@@ -156,7 +156,7 @@ assert tuple(SCALES) == SCALE_NAMES  # internal invariant: svorf's scales, in it
 
 
 #: Per-scale defaults of the ``speed`` protocol: ``SpeedOptions`` fields that differ from
-#: its defaults (``benchmark.protocols.speed_options.default_options``). smoke is quick
+#: its defaults (``benchmark.protocols.speed.options.default_options``). smoke is quick
 #: (1 repeat, 2 generator scenes at 1 sample); paper renders its generator scenes larger.
 SPEED_DEFAULTS: dict[str, dict[str, Any]] = {
     "smoke": {

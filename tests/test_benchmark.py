@@ -528,8 +528,8 @@ def test_generator_bridge_fills_the_config_and_unknown_presets_become_null_rows(
 
 
 def test_stability_protocol_all_cases_pass(tmp_path):
-    from benchmark.protocols import stability_cases as sc
     from benchmark.protocols.stability import CASES, run_stability
+    from benchmark.protocols.stability import cases as sc
 
     ctx = Context("stability", "smoke", tmp_path, tmp_path / "data", progress=False)
     report = json.loads(run_stability(ctx).read_text())
@@ -559,7 +559,7 @@ def test_stability_oracles_catch_a_finite_stand_in_for_masked_logits(monkeypatch
     """The code before 2026-11-24 filled masked logits with -1e4: rows whose valid logits
     all lay below that gave every point's mass to masked slots (zeroed: m = 0)."""
     import svorf.compose
-    from benchmark.protocols import stability_cases as sc
+    from benchmark.protocols.stability import cases as sc
 
     def finite_stand_in(logits, valid, dim=-1):
         if valid is None:
@@ -575,7 +575,7 @@ def test_stability_oracles_catch_a_finite_stand_in_for_masked_logits(monkeypatch
 
 def test_stability_training_row_fails_when_the_guard_does_not_fire(monkeypatch):
     from benchmark import adapter
-    from benchmark.protocols import stability_cases as sc
+    from benchmark.protocols.stability import cases as sc
 
     quiet = {"diverged": False, "diverged_at_step": None, "message": None,
              "checkpoint_loads": True, "checkpoint_step": 30, "nonfinite_params": 0,
@@ -587,7 +587,7 @@ def test_stability_training_row_fails_when_the_guard_does_not_fire(monkeypatch):
 
 
 def test_stability_connectivity_oracle_closed_form():
-    from benchmark.protocols.stability_cases import reference_connectivity
+    from benchmark.protocols.stability.cases import reference_connectivity
 
     # One slot, one ray, a single interval [0, 1] (near 0, far 1) of weight w: the
     # distortion is w^2 / 3 (no pairs), w = 1 - exp(-sigma).

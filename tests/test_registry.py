@@ -13,9 +13,9 @@ import pytest
 from benchmark import adapter
 from benchmark import cli as benchmark_cli
 from benchmark.context import Context
-from benchmark.protocols.speed_options import SpeedOptions, default_options
+from benchmark.protocols.speed.options import SpeedOptions, default_options
 from benchmark.protocols.tables import MEASURED_ROWS
-from benchmark.protocols.tradeoff_common import SETTINGS
+from benchmark.protocols.tradeoff.common import SETTINGS
 from benchmark.runner import planned_models
 from benchmark.scales import SCALES as BENCH_SCALES
 from benchmark.scales import SPEED_DEFAULTS, TRADEOFF

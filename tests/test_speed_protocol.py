@@ -13,8 +13,9 @@ import pytest
 import torch
 
 from benchmark import adapter
-from benchmark.protocols import _speed_worker as worker
-from benchmark.protocols import speed, speed_generator
+from benchmark.protocols import speed
+from benchmark.protocols.speed import generator as speed_generator
+from benchmark.protocols.speed import worker
 from benchmark.report import new_report
 from benchmark.runner import Context
 from benchmark.schema import METRIC_UNITS, check_report
@@ -252,12 +253,12 @@ def test_code_fingerprint_follows_the_measured_sources(tmp_path, monkeypatch):
     orig = speed.code_fingerprint(("svorf",))
     assert orig != speed.code_fingerprint(("generators",))
     # the same sources elsewhere give the same fingerprint; one changed byte another
-    repo = Path(speed.__file__).resolve().parents[2]
-    fake = tmp_path / "benchmark" / "protocols"
+    repo = Path(speed.__file__).resolve().parents[3]
+    fake = tmp_path / "benchmark" / "protocols" / "speed"
     fake.mkdir(parents=True)
     shutil.copytree(repo / "svorf", tmp_path / "svorf")
-    shutil.copy(speed.__file__, fake / "speed.py")
-    monkeypatch.setattr(speed, "__file__", str(fake / "speed.py"))
+    shutil.copy(speed.__file__, fake / "__init__.py")
+    monkeypatch.setattr(speed, "__file__", str(fake / "__init__.py"))
     assert speed.code_fingerprint(("svorf",)) == orig
     f = tmp_path / "svorf" / "model.py"
     f.write_text(f.read_text() + "\n# changed\n")

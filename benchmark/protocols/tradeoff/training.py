@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmark.context import Context
-from benchmark.protocols.tradeoff_common import WeightSet
+from benchmark.protocols.tradeoff.common import WeightSet
 
 __all__ = ["TRAIN_KNEE_DB", "TRAIN_SMOOTH", "training_curve", "training_entry"]
 

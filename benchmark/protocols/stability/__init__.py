@@ -9,8 +9,8 @@ coincident samples), many samples, and inputs in float16 / bfloat16 / float32 /
 float64 and under bf16 autocast; compares colour, opacity and depth with
 :func:`reference_render` (float64, the closed-form quadrature, no clamping), and
 counts NaN/Inf in the outputs and in the gradients. No dataset or model needed.
-The float64 oracles live in :mod:`.stability_reference` (re-exported here); the cases
-beyond the renderer in :mod:`.stability_cases`.
+The float64 oracles live in :mod:`.reference` (re-exported here); the cases
+beyond the renderer in :mod:`.cases`.
 
 Each case is a row of table ``stability`` with ``max_abs_err_rgb``,
 ``max_abs_err_acc``, ``max_abs_err_depth``, ``max_rel_err_depth`` and
@@ -30,8 +30,8 @@ from torch import Tensor
 
 from benchmark import adapter
 from benchmark.context import Context
-from benchmark.protocols import stability_cases as sc
-from benchmark.protocols.stability_reference import (
+from benchmark.protocols.stability import cases as sc
+from benchmark.protocols.stability.reference import (
     loguniform,
     nonfinite_count,
     reference_render,
@@ -249,7 +249,7 @@ def _failure_text(r: dict[str, Any]) -> str:
 
 def run_stability(ctx: Context) -> Path:
     """Every stress case as a row: the renderer (:data:`CASES`, table ``stability``), then
-    composition, losses, metrics and the NaN guard (``stability_cases``); the report notes
+    composition, losses, metrics and the NaN guard (:mod:`.cases`); the report notes
     each failure plainly."""
     import time
 

@@ -14,8 +14,8 @@ import sys
 from typing import Any
 
 from benchmark.context import Context
-from benchmark.protocols.tradeoff_common import TradeoffSettings
-from benchmark.protocols.tradeoff_pareto import curve_summary, timing_noise
+from benchmark.protocols.tradeoff.common import TradeoffSettings
+from benchmark.protocols.tradeoff.pareto import curve_summary, timing_noise
 from benchmark.rows import row_id
 
 __all__ = ["GENERATOR_CANDIDATES", "generator_curve", "measure_generator"]
@@ -139,7 +139,7 @@ def measure_generator(
 
 def generator_curve(rows: list[dict[str, Any]], info: dict[str, Any]) -> dict[str, Any]:
     """The generator curve's entry of ``report["curves"]``: its front, knee and shipped
-    default (:func:`benchmark.protocols.tradeoff_pareto.curve_summary`), or ``absent``
+    default (:func:`benchmark.protocols.tradeoff.pareto.curve_summary`), or ``absent``
     with the reason when :func:`measure_generator` made no rows."""
     if not rows:
         return {"kind": "generator", "absent": info["absent"]}

@@ -4,8 +4,8 @@ each measured in a fresh worker subprocess.
 Where this sits: :func:`benchmark.protocols.speed.run_speed` makes the ``tab:time``,
 ``speed`` and ``speed_inference`` rows here (:func:`measure_training`,
 :func:`training_row`, :func:`inference_rows`); the sVORF vs uORF-style comparison
-(:mod:`.speed_compare`) starts its workers with :func:`run_worker` / :func:`worker_args`
-too. The worker itself is :mod:`benchmark.protocols._speed_worker` (its peak memory
+(:mod:`.compare`) starts its workers with :func:`run_worker` / :func:`worker_args`
+too. The worker itself is :mod:`benchmark.protocols.speed.worker` (its peak memory
 belongs to that training alone).
 """
 
@@ -57,18 +57,17 @@ def load_avg() -> list[float] | None:
 
 
 def run_worker(args: dict[str, Any]) -> dict[str, Any]:
-    """Run one measurement (:mod:`benchmark.protocols._speed_worker`) in a fresh
+    """Run one measurement (:mod:`benchmark.protocols.speed.worker`) in a fresh
     interpreter and return its JSON result.
 
     Raises:
         RuntimeError: the worker failed (the end of its stderr is in the message).
     """
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(
-        [str(Path(__file__).resolve().parents[2]), env.get("PYTHONPATH", "")]
-    )
+    repo = Path(__file__).resolve().parents[3]  # benchmark/protocols/speed/training.py
+    env["PYTHONPATH"] = os.pathsep.join([str(repo), env.get("PYTHONPATH", "")])
     proc = subprocess.run(
-        [sys.executable, "-m", "benchmark.protocols._speed_worker", json.dumps(args)],
+        [sys.executable, "-m", "benchmark.protocols.speed.worker", json.dumps(args)],
         capture_output=True,
         text=True,
         check=False,

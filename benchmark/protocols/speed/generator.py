@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmark.context import Context
-from benchmark.protocols.speed_options import SpeedOptions
+from benchmark.protocols.speed.options import SpeedOptions
 from benchmark.rows import row_id
 
 __all__ = [

@@ -2,8 +2,8 @@
 
 Where this sits: :func:`benchmark.protocols.speed.run_speed` takes a :class:`SpeedOptions`
 (:func:`default_options` of the scale unless given, from
-``benchmark.scales.SPEED_DEFAULTS``) and hands it to the measurements of
-:mod:`.speed_compare` and :mod:`.speed_generator`.
+``benchmark.scales.SPEED_DEFAULTS``) and hands it to the measurements of :mod:`.compare` and
+:mod:`.generator`.
 """
 
 from __future__ import annotations

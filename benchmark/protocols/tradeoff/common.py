@@ -1,12 +1,11 @@
 """Settings and pieces shared by the ``tradeoff`` protocol's curves.
 
 Where this sits: :mod:`benchmark.protocols.tradeoff` runs the protocol; each curve has its
-module (:mod:`.tradeoff_step`, :mod:`.tradeoff_render`, :mod:`.tradeoff_training`,
-:mod:`.tradeoff_generator`) and the fronts theirs (:mod:`.tradeoff_pareto`). This module
-holds what several of them need: how hard each scale measures (:data:`SETTINGS`, defined
-with the benchmark's other per-scale settings in :mod:`benchmark.scales`), the
-weight sets the step and render curves use (:class:`WeightSet`), label formatting and the
-progress line.
+module (:mod:`.step`, :mod:`.render`, :mod:`.training`, :mod:`.generator`) and the fronts
+theirs (:mod:`.pareto`). This module holds what several of them need: how hard each scale
+measures (:data:`SETTINGS`, defined with the benchmark's other per-scale settings in
+:mod:`benchmark.scales`), the weight sets the step and render curves use
+(:class:`WeightSet`), label formatting and the progress line.
 """
 
 from __future__ import annotations

@@ -1,11 +1,10 @@
 """The ``speed`` protocol's side-by-side comparison: sVORF against the uORF-style
 configuration of the same code (table ``speed_vs_uorf``).
 
-Where this sits: :func:`benchmark.protocols.speed.run_speed` calls
-:func:`compare_training` at every batch of :func:`compare_batches`; each repeat of each
-configuration is a fresh worker subprocess (:mod:`.speed_training`), alternating, and
-:func:`ratio_row` sets the ratios beside the paper's (:data:`PAPER_RATIOS`) and the
-targets (:data:`TARGET_RATIOS`).
+Where this sits: :func:`benchmark.protocols.speed.run_speed` calls :func:`compare_training`
+at every batch of :func:`compare_batches`; each repeat of each configuration is a fresh
+worker subprocess (:mod:`.training`), alternating, and :func:`ratio_row` sets the ratios
+beside the paper's (:data:`PAPER_RATIOS`) and the targets (:data:`TARGET_RATIOS`).
 """
 
 from __future__ import annotations
@@ -15,8 +14,8 @@ from typing import Any
 
 from benchmark.context import Context
 from benchmark.jobs import ModelJob
-from benchmark.protocols.speed_options import SpeedOptions
-from benchmark.protocols.speed_training import available_mb, load_avg, run_worker, worker_args
+from benchmark.protocols.speed.options import SpeedOptions
+from benchmark.protocols.speed.training import available_mb, load_avg, run_worker, worker_args
 from benchmark.report import RowStore
 from benchmark.rows import row_id
 

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from benchmark import adapter
 from benchmark.metrics import ari, fg_ari_score, psnr, ssim
-from benchmark.protocols.stability_reference import (
+from benchmark.protocols.stability.reference import (
     loguniform,
     nonfinite_count,
     reference_render,

@@ -1,7 +1,7 @@
 """Float64 oracles and helpers of the ``stability`` protocol.
 
 Where this sits: :mod:`benchmark.protocols.stability` (the volume renderer's stress cases)
-and :mod:`benchmark.protocols.stability_cases` (composition, losses, metrics) both score
+and :mod:`benchmark.protocols.stability.cases` (composition, losses, metrics) both score
 against these references and draw their inputs and NaN/Inf counts with these helpers;
 neither module imports the other's internals.
 """

@@ -1,6 +1,6 @@
 """Subprocess of the ``speed`` protocol: one timed training (+ render) measurement.
 
-Run as ``python -m benchmark.protocols._speed_worker '<json args>'``; prints one
+Run as ``python -m benchmark.protocols.speed.worker '<json args>'``; prints one
 JSON line. A separate process so that its peak memory is this measurement's alone.
 
 Args (JSON object): ``scale``, ``train_preset``, ``variant``, ``seed``, ``device``,
@@ -249,7 +249,7 @@ def main(argv: list[str]) -> int:
 
     style = a.get("style", "svorf")
     if style not in ("svorf", "uorf"):
-        raise ValueError(f"_speed_worker: style must be 'svorf' or 'uorf', got {style!r}")
+        raise ValueError(f"speed worker: style must be 'svorf' or 'uorf', got {style!r}")
     work = Path(a["work"])
     shutil.rmtree(work, ignore_errors=True)  # always a fresh run: timings, not results
     mcfg = adapter.model_config(a["scale"], a["train_preset"], a["variant"])

@@ -9,12 +9,12 @@ Each knob is swept over a few settings; each setting is one point:
 - time: median wall time of one training step (forward + loss + backward of the scale's
   training batch shape, perturbed samples), over ``repeats`` repeats **interleaved** with
   every other point of the run (repeat r runs every point once, in turn), so the load of
-  other processes hits all points alike (the method of :mod:`benchmark.tools.speedbench`, whose
-  batch, step, error and pair-counting functions this module calls);
+  other processes hits all points alike (the method of :mod:`benchmark.tools.speedbench`,
+  whose batch, step, error and pair-counting functions the curves call);
 - speed-up: the knob-free baseline's median / this point's median, same run;
 - error: the point's evaluation render (no jitter) against the knob-free model with the
-  same weights on the same rays (:func:`benchmark.tools.speedbench.render_errors`): rgb max / mean
-  |diff| (colour units), depth mean |diff| (world units), slot_probs max |diff|;
+  same weights on the same rays (:func:`benchmark.tools.speedbench.render_errors`): rgb
+  max / mean |diff| (colour units), depth mean |diff| (world units), slot_probs max |diff|;
 - ``within_tolerance``: every error within the bound stated in
   ``tests/test_speed_knobs.py`` (:data:`TOLERANCE`; slot_probs 3e-2 for combinations).
 
@@ -52,11 +52,11 @@ not dataset scenes, so no dataset is needed; the report says so. These rows are 
   shipped default (``report["curves"]``; rows carry ``on_front``). Figures:
   ``tradeoff.png`` (step), ``tradeoff_render.png``, ``tradeoff_training.png``.
 
-Layout: this module runs the protocol (:func:`run_tradeoff`) and re-exports the public
-names of its parts: each curve's module (:mod:`.tradeoff_step`, :mod:`.tradeoff_render`,
-:mod:`.tradeoff_training`, :mod:`.tradeoff_generator`), the fronts
-(:mod:`.tradeoff_pareto`) and the shared settings (:mod:`.tradeoff_common`). The step and
-render curves time their points with :func:`benchmark.tools.speedbench.time_interleaved`.
+Layout: this package's ``__init__`` runs the protocol (:func:`run_tradeoff`) and re-exports
+the public names of its parts: each curve's module (:mod:`.step`, :mod:`.render`,
+:mod:`.training`, :mod:`.generator`), the fronts (:mod:`.pareto`) and the shared settings
+(:mod:`.common`). The step and render curves time their points with
+:func:`benchmark.tools.speedbench.time_interleaved`.
 """
 
 from __future__ import annotations
@@ -70,18 +70,18 @@ import torch
 
 from benchmark import adapter
 from benchmark.context import Context
-from benchmark.protocols.tradeoff_common import (
+from benchmark.protocols.tradeoff.common import (
     SETTINGS,
     TradeoffSettings,
     WeightSet,
     log_tradeoff,
 )
-from benchmark.protocols.tradeoff_generator import (
+from benchmark.protocols.tradeoff.generator import (
     GENERATOR_CANDIDATES,
     generator_curve,
     measure_generator,
 )
-from benchmark.protocols.tradeoff_pareto import (
+from benchmark.protocols.tradeoff.pareto import (
     METRIC_EPS,
     MIN_NOISE,
     curve_summary,
@@ -90,7 +90,7 @@ from benchmark.protocols.tradeoff_pareto import (
     mark_fronts,
     pareto_front,
 )
-from benchmark.protocols.tradeoff_render import (
+from benchmark.protocols.tradeoff.render import (
     EARLY_STOPS,
     EVAL_COMBINED,
     FINE_MIN_WEIGHTS,
@@ -102,7 +102,7 @@ from benchmark.protocols.tradeoff_render import (
     render_note,
     render_points,
 )
-from benchmark.protocols.tradeoff_step import (
+from benchmark.protocols.tradeoff.step import (
     ALL_KNOBS,
     SHARPEN,
     TOLERANCE,
@@ -119,7 +119,7 @@ from benchmark.protocols.tradeoff_step import (
     steps_done,
     weight_sets,
 )
-from benchmark.protocols.tradeoff_training import (
+from benchmark.protocols.tradeoff.training import (
     TRAIN_KNEE_DB,
     TRAIN_SMOOTH,
     training_curve,

@@ -1,11 +1,11 @@
 """Pareto fronts, knees and the shipped default's place on every ``tradeoff`` curve.
 
-Where this sits: each curve module of the ``tradeoff`` protocol (:mod:`.tradeoff_step`,
-:mod:`.tradeoff_render`, :mod:`.tradeoff_generator`) summarises its rows with
-:func:`curve_summary`; :func:`benchmark.protocols.tradeoff.run_tradeoff` marks the rows on
-a front (:func:`mark_fronts`) and words every curve for the notes (:func:`front_notes`).
-Times within the measured timing noise (:func:`timing_noise`) and quality differences
-below :data:`METRIC_EPS` count as equal.
+Where this sits: each curve module of the ``tradeoff`` protocol (:mod:`.step`,
+:mod:`.render`, :mod:`.generator`) summarises its rows with :func:`curve_summary`;
+:func:`benchmark.protocols.tradeoff.run_tradeoff` marks the rows on a front
+(:func:`mark_fronts`) and words every curve for the notes (:func:`front_notes`). Times
+within the measured timing noise (:func:`timing_noise`) and quality differences below
+:data:`METRIC_EPS` count as equal.
 """
 
 from __future__ import annotations

@@ -23,14 +23,14 @@ import torch
 
 from benchmark import adapter
 from benchmark.context import Context
-from benchmark.protocols.tradeoff_common import (
+from benchmark.protocols.tradeoff.common import (
     TradeoffSettings,
     WeightSet,
     fmt_value,
     knobs_text,
     log_tradeoff,
 )
-from benchmark.protocols.tradeoff_pareto import curve_summary, timing_noise
+from benchmark.protocols.tradeoff.pareto import curve_summary, timing_noise
 from benchmark.rows import row_id
 
 __all__ = [

@@ -4,7 +4,7 @@ of the same code, side by side), generator overhead and scaling, inference image
 Where this sits: compared with the paper's Table 8 (``tab:time``: memory and time of one
 CLEVR-567 epoch at batch size 1 on a V100) and with the project's speed targets
 (:data:`TARGET_RATIOS`, :data:`GENERATOR_BASELINE_TARGET`). Every
-training measurement runs in a fresh subprocess (:mod:`benchmark.protocols._speed_worker`)
+training measurement runs in a fresh subprocess (:mod:`benchmark.protocols.speed.worker`)
 so that its peak memory belongs to that training alone:
 
 - CPU: ``peak_memory_mb`` is the peak resident set size of the worker process (Python,
@@ -48,10 +48,10 @@ Tables (rows):
    scene from one encode; RGB, depth and slot masks come out of the same render) and of
    segmentation rendering (encode + the input view only), medians over test scenes.
 
-Layout: this module runs the protocol (:func:`run_speed`, cached rows keyed on
-:func:`code_fingerprint`) and re-exports the public names of its parts: the options
-(:mod:`.speed_options`), tables 1, 2 and 5 (:mod:`.speed_training`), table 3
-(:mod:`.speed_compare`) and table 4 (:mod:`.speed_generator`).
+Layout: this package's ``__init__`` runs the protocol (:func:`run_speed`, cached rows keyed
+on :func:`code_fingerprint`) and re-exports the public names of its parts: the options
+(:mod:`.options`), tables 1, 2 and 5 (:mod:`.training`), table 3 (:mod:`.compare`) and table
+4 (:mod:`.generator`).
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ from typing import Any
 from benchmark.context import Context
 from benchmark.jobs import ModelJob
 from benchmark.paper_numbers import paper_rows
-from benchmark.protocols.speed_compare import (
+from benchmark.protocols.speed.compare import (
     PAPER_RATIOS,
     RATIO_KEYS,
     RATIO_LABEL,
@@ -76,7 +76,7 @@ from benchmark.protocols.speed_compare import (
     ratio_note,
     ratio_row,
 )
-from benchmark.protocols.speed_generator import (
+from benchmark.protocols.speed.generator import (
     BASELINE_LABELS,
     GENERATOR_BASELINE_TARGET,
     baseline_note,
@@ -85,8 +85,8 @@ from benchmark.protocols.speed_generator import (
     generator_row_ids,
     generator_rows,
 )
-from benchmark.protocols.speed_options import SpeedOptions, default_options
-from benchmark.protocols.speed_training import (
+from benchmark.protocols.speed.options import SpeedOptions, default_options
+from benchmark.protocols.speed.training import (
     PAPER_EPOCH_SCENES,
     inference_rows,
     measure_training,
@@ -245,7 +245,7 @@ MEASURED_CODE: tuple[str, ...] = (
     "svorf",
     "generators",
     *GENERATOR_TOOLS,
-    "benchmark/protocols/_speed_worker.py",
+    "benchmark/protocols/speed/worker.py",
 )
 #: The same for the script comparison's rows (the generator and its tools only).
 BASELINE_CODE: tuple[str, ...] = ("generators", *GENERATOR_TOOLS)
@@ -254,7 +254,7 @@ BASELINE_CODE: tuple[str, ...] = ("generators", *GENERATOR_TOOLS)
 def code_fingerprint(paths: tuple[str, ...] = MEASURED_CODE) -> str:
     """sha256 (16 hex) of the named source files, so that a cached timing or memory row
     is measured again after the code it measured has changed (not after docs or tests)."""
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]  # the repository (this is speed/__init__.py)
     h = hashlib.sha256()
     for rel in paths:
         p = root / rel
