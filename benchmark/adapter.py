@@ -506,8 +506,6 @@ def diverging_run(
         on disk), ``checkpoint_loads`` (``load_run`` reads it), ``nonfinite_params``
         (NaN/Inf entries in its weights) and ``temp_files`` (leftover ``*.tmp*`` files).
     """
-    import re
-
     st = _svorf_train()
     root = Path(workdir)
     split = write_synthetic_split(root / "train", n_scenes=4, resolution=32, seed=seed)
@@ -520,8 +518,7 @@ def diverging_run(
     try:
         st.train(split, run, mcfg, tcfg, progress=False)
     except st.TrainingDiverged as e:
-        m = re.search(r"at step (\d+)", str(e))
-        out.update(diverged=True, message=str(e), diverged_at_step=int(m.group(1)) if m else None)
+        out.update(diverged=True, message=str(e), diverged_at_step=e.step)
     try:
         model, info = st.load_run(run, device="cpu")
         out["checkpoint_loads"] = True

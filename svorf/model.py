@@ -79,6 +79,32 @@ class RenderOutput:
     coarse_rgb: Tensor
 
 
+@dataclass
+class PairCount:
+    """How many (point, slot) field evaluations a model asked for and how many it kept.
+
+    The slot selection (``ModelConfig.slot_topk`` / ``slot_keep_mass``, slot locality and
+    masked slots) drops pairs whose field is then never computed; :attr:`fraction` is the
+    share that was evaluated. Counted only while :meth:`SVORF.count_pairs` is on.
+
+    Attributes:
+        kept: pairs evaluated.
+        total: pairs there were (B scenes x K slots x P points, summed over calls).
+    """
+
+    kept: float = 0.0
+    total: float = 0.0
+
+    @property
+    def fraction(self) -> float:
+        """``kept / total`` (0 before any call)."""
+        return self.kept / max(self.total, 1.0)
+
+    def reset(self) -> None:
+        """Start counting from zero again."""
+        self.kept = self.total = 0.0
+
+
 # Above this fraction of kept (point, slot) pairs the dense evaluation is faster than the
 # sparse one (gathers, scatters, tile padding). Measured at cpu scale, fwd+bwd of the fields
 # (fp32 / bf16): sparse 4-7x faster at 15% kept, 2-3x at 30%, about even at 85%, dense
@@ -174,6 +200,7 @@ class SVORF(nn.Module):
         self.slot_centre: nn.Linear | None = None  # ModelConfig.slot_locality
         if cfg.slot_locality is not None and cfg.slot_centre in ("learned", "anchored"):
             self.slot_centre = nn.Linear(cfg.slot_dim, 3)
+        self.pair_count: PairCount | None = None  # see count_pairs
 
     # ------------------------------------------------------------------ encoding
     def encode(self, images: Tensor, return_attn: bool = False) -> Tensor | tuple[Tensor, Tensor]:
@@ -577,6 +604,11 @@ class SVORF(nn.Module):
         dropped pairs are zeroed, with the same result.
         """
         fields = self.fields
+        if self.pair_count is not None:
+            B, _, P, _ = gx.shape
+            total = B * params.num_slots * P
+            self.pair_count.total += total
+            self.pair_count.kept += total if keep is None else float(keep.sum())
         if keep is None:
             sigma_k, rgb_k = fields.eval_fields(params, gx, gd)
             return sigma_k.float(), rgb_k.float()
@@ -588,6 +620,17 @@ class SVORF(nn.Module):
                 return sigma_k.float(), rgb_k.float()
             return sigma_k.float() * sel, rgb_k.float() * sel[..., None]
         return fields.eval_pairs(params, gx, gd, sel)
+
+    def count_pairs(self) -> PairCount:
+        """Count the (point, slot) pairs the fields evaluate from now on.
+
+        Returns the live :class:`PairCount` (reset it with ``reset()``); counting costs one
+        reduction per field call, so it is off until this is called. With
+        ``slot_topk=2`` of 4 slots and nothing else dropped, ``fraction`` is 0.5.
+        """
+        if self.pair_count is None:
+            self.pair_count = PairCount()
+        return self.pair_count
 
     # ------------------------------------------------------------------ training API
     def forward(self, images: Tensor, rays_o: Tensor, rays_d: Tensor, **kw: Any) -> RenderOutput:

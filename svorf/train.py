@@ -140,7 +140,19 @@ EvalFn = Callable[[SVORF, MultiViewDataset], dict[str, float]]
 
 
 class TrainingDiverged(RuntimeError):
-    """The loss or a gradient became NaN/Inf; the last good checkpoint is left untouched."""
+    """The loss or a gradient became NaN/Inf; the last good checkpoint is left untouched.
+
+    Attributes:
+        step: the optimizer step (1-based, as in ``log.jsonl``) whose loss or gradient was
+            not finite.
+    """
+
+    def __init__(self, message: str, step: int) -> None:
+        super().__init__(message)
+        self.step = int(step)
+
+    def __reduce__(self) -> tuple[Any, ...]:  # picklable across processes (Ray, torchrun)
+        return (type(self), (str(self), self.step))
 
 
 # --------------------------------------------------------------------------- run folder
@@ -571,7 +583,8 @@ def _guard_loss(run: _Run, done: int, loss: Tensor, parts: dict[str, Tensor]) ->
     if not torch.isfinite(loss):
         shown = ", ".join(f"{k}={float(v):.4g}" for k, v in parts.items())
         raise TrainingDiverged(
-            f"non-finite loss {float(loss.detach())} at step {done} ({shown}); {_kept(run)}"
+            f"non-finite loss {float(loss.detach())} at step {done} ({shown}); {_kept(run)}",
+            step=done,
         )
 
 
@@ -585,7 +598,8 @@ def _guard_grad(run: _Run, done: int, loss: Tensor, gnorm: Tensor) -> None:
     if not torch.isfinite(gnorm):
         raise TrainingDiverged(
             f"non-finite gradient norm at step {done} (loss {float(loss.detach()):.6g}); "
-            f"{_kept(run)}"
+            f"{_kept(run)}",
+            step=done,
         )
 
 

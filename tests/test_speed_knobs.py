@@ -164,6 +164,27 @@ def test_sparse_and_dense_paths_of_eval_slots_agree():
         torch.testing.assert_close(c, c_sparse, atol=1e-6, rtol=1e-5)
 
 
+def test_count_pairs_counts_the_kept_pairs():
+    """SVORF.count_pairs: every (point, slot) pair without a selection, the kept ones with."""
+    model, _ = model_pair()
+    slots = model.encode(make_images(2))
+    p = model.fields.params(slots)
+    x = (torch.rand(2, 1, 30, 3) - 0.5) * 6
+    gx = positional_encoding(x / model.cfg.box_half, model.cfg.pos_freqs_xyz)
+    gd = positional_encoding(F.normalize(torch.randn(2, 1, 30, 3), dim=-1), model.cfg.pos_freqs_dir)
+    assert model.pair_count is None  # off until asked for
+    counts = model.count_pairs()
+    assert model.count_pairs() is counts and counts.fraction == 0.0
+    keep = torch.zeros(2, 30, 4, dtype=torch.bool)
+    keep[:, :, :1] = True
+    model._eval_slots(p, gx, gd, keep)
+    assert (counts.kept, counts.total) == (60.0, 240.0) and counts.fraction == 0.25
+    model._eval_slots(p, gx, gd, None)
+    assert (counts.kept, counts.total) == (300.0, 480.0)
+    counts.reset()
+    assert (counts.kept, counts.total, counts.fraction) == (0.0, 0.0, 0.0)
+
+
 # ----------------------------------------------------------------------------- composer
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import pickle
 import shutil
 
 import pytest
@@ -179,8 +180,10 @@ def test_nan_loss_raises_and_keeps_the_last_checkpoint(split, tmp_path, monkeypa
         return total * float("nan"), parts
 
     monkeypatch.setattr(SVORF, "loss", nan_loss)
-    with pytest.raises(TrainingDiverged, match=r"at step 3 .*step 2\)"):
+    with pytest.raises(TrainingDiverged, match=r"at step 3 .*step 2\)") as e:
         train(split, run, MCFG, tcfg(steps=4, ckpt_every=1), resume=True, progress=False)
+    assert e.value.step == 3
+    assert pickle.loads(pickle.dumps(e.value)).step == 3
     assert _sha(run / "checkpoint.pt") == before
     assert load_run(run)[1].step == 2
 

@@ -259,27 +259,6 @@ def train_step(model: SVORF, batch) -> None:
     loss.backward()
 
 
-class KeptPairs:
-    """Counts the (point, slot) pairs a model evaluates (wraps ``SVORF._eval_slots``)."""
-
-    def __init__(self, model: SVORF) -> None:
-        self.kept = self.total = 0.0
-        inner = model._eval_slots
-
-        def wrapped(params, gx, gd, keep):
-            B, _, P, _ = gx.shape
-            K = params.num_slots
-            self.total += B * K * P
-            self.kept += B * K * P if keep is None else float(keep.sum())
-            return inner(params, gx, gd, keep)
-
-        model._eval_slots = wrapped  # type: ignore[method-assign]
-
-    @property
-    def fraction(self) -> float:
-        return self.kept / max(self.total, 1.0)
-
-
 @torch.no_grad()
 def render_errors(model: SVORF, ref: SVORF, batch) -> dict[str, float]:
     """Difference of ``model``'s evaluation render from ``ref``'s on the batch's rays."""
@@ -378,13 +357,13 @@ def run(
     common = {k: v for k, v in variants[0].overrides.items() if k not in KNOBS_OFF}
     state = build_model(scale, Variant("init", common), None).state_dict()
     models = [build_model(scale, v, state) for v in variants]
-    counters = [KeptPairs(m) for m in models]
+    counters = [m.count_pairs() for m in models]
     batch = make_batch(models[0].cfg, scenes, rays)
     queries = [make_query_step(m, batch) for m in models]
 
     def reset_counters() -> None:
         for c in counters:
-            c.kept = c.total = 0.0
+            c.reset()
 
     # Per variant its training step, then its per-point evaluation alone.
     steps = [s for m, q in zip(models, queries) for s in (partial(train_step, m, batch), q)]

@@ -304,7 +304,7 @@ def measure(
         m = speedbench.build_model(ctx.scale, v, p.weights.state, ctx.seeds["train"])
         assert m.cfg == cfg, (m.cfg, cfg)  # build_model reproduced the requested config
         models.append(m.to(dev))
-        counters.append(speedbench.KeptPairs(m))
+        counters.append(m.count_pairs())
     scenes, rays = batch_shape
     batch = tuple(
         x.to(dev) for x in speedbench.make_batch(models[0].cfg, scenes, rays, ctx.seeds["eval"])
@@ -313,7 +313,7 @@ def measure(
 
     def reset_counters() -> None:
         for c in counters:
-            c.kept = c.total = 0.0
+            c.reset()
 
     times = speedbench.time_interleaved(
         [partial(speedbench.train_step, m, batch) for m in models],
