@@ -424,20 +424,11 @@ def predict_scene(
         dataset, input_view = _InputViewOnly(dataset, input_view), 0
     with torch.no_grad():
         out = st.predict_scene(model, dataset, index, input_view=input_view, **kw)
-    get = out.get if isinstance(out, dict) else lambda k, d=None: getattr(out, k, d)
-    rgb = torch.as_tensor(get("rgb")).detach().float().cpu()
-    if rgb.dim() == 4 and rgb.shape[-1] == 3:  # [V, H, W, 3] -> [V, 3, H, W]
-        rgb = rgb.permute(0, 3, 1, 2)
-    depth = get("depth_z")
-    if depth is None:
-        depth = get("depth")
-    labels = get("labels")
-    if labels is None:
-        labels = get("segmentation")
+    rgb = out.rgb.detach().float().cpu().permute(0, 3, 1, 2)  # [V, H, W, 3] -> [V, 3, H, W]
     return Prediction(
         rgb=rgb.clamp(0.0, 1.0).contiguous(),
-        depth_z=torch.as_tensor(depth).detach().float().cpu(),
-        labels=torch.as_tensor(labels).detach().long().cpu(),
+        depth_z=out.depth_z.detach().float().cpu(),
+        labels=out.labels.detach().long().cpu(),
     )
 
 

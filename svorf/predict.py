@@ -4,13 +4,13 @@ Where this sits: on top of ``svorf.model`` and ``svorf.data``. :func:`predict_sc
 encodes one view of a dataset scene and renders every view (``svorf render``, the
 recipe's metrics and the benchmark adapter use it); :func:`default_eval` is the held-out
 evaluation ``svorf.train.train`` runs when no ``eval_fn`` is given. Both names are
-re-exported by ``svorf.train``, their old home.
+re-exported by ``svorf.train``, their old home. A prediction is a :class:`ScenePrediction`.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -18,7 +18,35 @@ from torch import Tensor
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
 
-__all__ = ["default_eval", "predict_scene"]
+__all__ = ["ScenePrediction", "default_eval", "predict_scene"]
+
+
+@dataclass(frozen=True)
+class ScenePrediction:
+    """What :func:`predict_scene` renders for one scene (CPU tensors).
+
+    V views of H x W pixels, K slots.
+
+    Attributes:
+        rgb: float32 [V, H, W, 3] in [0, 1].
+        depth_z: float32 [V, H, W] planar depth (world units, converted from the rendered
+            distance ``depth_t`` with the dataset's ``z_scale``).
+        depth_t: float32 [V, H, W] expected distance along the unit ray direction.
+        acc: float32 [V, H, W] accumulated opacity.
+        slot_probs: float32 [V, H, W, K] rendered soft slot masks (rows sum to 1).
+        labels: int64 [V, H, W] arg-max slot of ``slot_probs``.
+        input_view: the view the model encoded.
+        scene: the scene number (not the dataset position).
+    """
+
+    rgb: Tensor
+    depth_z: Tensor
+    depth_t: Tensor
+    acc: Tensor
+    slot_probs: Tensor
+    labels: Tensor
+    input_view: int
+    scene: int
 
 
 @torch.no_grad()
@@ -29,7 +57,7 @@ def predict_scene(
     input_view: int = 0,
     chunk: int = 4096,
     slots_scene: int | None = None,
-) -> dict[str, Any]:
+) -> ScenePrediction:
     """Encode one view of a scene and render every view at the dataset's resolution.
 
     Args:
@@ -45,12 +73,7 @@ def predict_scene(
             same with another scene's slots; a decomposition does not).
 
     Returns:
-        dict of CPU tensors and ints:
-        ``rgb`` [V, H, W, 3] float32 in [0, 1]; ``depth_z`` [V, H, W] planar depth
-        (world units, converted from the rendered distance t with ``z_scale``);
-        ``depth_t`` [V, H, W] distance along the unit ray; ``acc`` [V, H, W] opacity;
-        ``slot_probs`` [V, H, W, K] rendered soft slot masks; ``labels`` [V, H, W]
-        int64 arg-max slot; ``input_view`` int; ``scene`` the scene number.
+        The :class:`ScenePrediction` of every view (V = ``dataset.n_views``).
     """
     if not 0 <= scene < len(dataset):
         raise ValueError(f"scene position must be in [0, {len(dataset)}), got {scene}")
@@ -79,16 +102,16 @@ def predict_scene(
     k = probs[0].shape[-1]
     depth_t_t = torch.stack(depth_t).view(v, h, w)
     slot_probs = torch.stack(probs).view(v, h, w, k)
-    return {
-        "rgb": torch.stack(rgb).view(v, h, w, 3),
-        "depth_z": depth_t_t * sv.z_scale,
-        "depth_t": depth_t_t,
-        "acc": torch.stack(acc).view(v, h, w),
-        "slot_probs": slot_probs,
-        "labels": slot_probs.argmax(-1),
-        "input_view": input_view,
-        "scene": sv.scene,
-    }
+    return ScenePrediction(
+        rgb=torch.stack(rgb).view(v, h, w, 3),
+        depth_z=depth_t_t * sv.z_scale,
+        depth_t=depth_t_t,
+        acc=torch.stack(acc).view(v, h, w),
+        slot_probs=slot_probs,
+        labels=slot_probs.argmax(-1),
+        input_view=int(input_view),
+        scene=int(sv.scene),
+    )
 
 
 def default_eval(model: SVORF, dataset: MultiViewDataset, max_scenes: int = 4) -> dict[str, float]:
@@ -104,14 +127,14 @@ def default_eval(model: SVORF, dataset: MultiViewDataset, max_scenes: int = 4) -
     for i in range(n):
         p = predict_scene(model, dataset, i, input_view=0)
         gt = dataset.images(i).permute(0, 2, 3, 1)
-        err = ((p["rgb"] - gt) ** 2).mean(dim=(1, 2, 3))
+        err = ((p.rgb - gt) ** 2).mean(dim=(1, 2, 3))
         mse_in.append(err[0])
         if len(err) > 1:
             mse_nv.append(err[1:].mean())
         gtd = dataset[i].depth_z
         ok = torch.isfinite(gtd)
         if ok.any():
-            derr.append((p["depth_z"][ok] - gtd[ok]).abs().mean())
+            derr.append((p.depth_z[ok] - gtd[ok]).abs().mean())
 
     def psnr(xs: list[Tensor]) -> float:
         return (

@@ -77,7 +77,7 @@ from svorf.checkpoint import (
 from svorf.config import ModelConfig, bf16_autocast_on
 from svorf.data import MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
-from svorf.predict import default_eval, predict_scene
+from svorf.predict import ScenePrediction, default_eval, predict_scene
 from svorf.ray_sampling import ErrorMap
 from svorf.train_config import (
     BOOKKEEPING_FIELDS,
@@ -114,6 +114,7 @@ __all__ = [
     "EvalFn",
     "PresetSpec",
     "RunInfo",
+    "ScenePrediction",
     "TrainConfig",
     "TrainingDiverged",
     "apply_recipe",

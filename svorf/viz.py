@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -24,6 +23,7 @@ from torch import Tensor
 
 from scenefmt import write_rgb
 from svorf.data import MultiViewDataset
+from svorf.predict import ScenePrediction
 
 __all__ = [
     "COLUMN_LABELS",
@@ -168,7 +168,7 @@ def _depth_range(*maps: Tensor) -> tuple[float, float]:
 
 
 def save_scene_figures(
-    pred: dict[str, Any],
+    pred: ScenePrediction,
     dataset: MultiViewDataset,
     position: int,
     out_dir: str | os.PathLike,
@@ -178,7 +178,7 @@ def save_scene_figures(
     """Write the PNGs of one predicted scene.
 
     Args:
-        pred: the dict of :func:`svorf.train.predict_scene`.
+        pred: what :func:`svorf.predict.predict_scene` returned.
         dataset: the dataset the prediction was made on (ground truth).
         position: the scene's dataset position.
         out_dir: folder to write into (created).
@@ -192,21 +192,21 @@ def save_scene_figures(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sv = dataset[position]
-    k = pred["slot_probs"].shape[-1]
-    lo, hi = _depth_range(sv.depth_z, pred["depth_z"])
+    k = pred.slot_probs.shape[-1]
+    lo, hi = _depth_range(sv.depth_z, pred.depth_z)
     written: list[Path] = []
     rows = []
-    inp = int(pred["input_view"])
+    inp = int(pred.input_view)
     write_rgb(out / "input.png", to_uint8(sv.images[inp].permute(1, 2, 0)))
     written.append(out / "input.png")
     for v in range(dataset.n_views):
         panels = {
             "gt": to_uint8(sv.images[v].permute(1, 2, 0)),
-            "render": to_uint8(pred["rgb"][v]),
+            "render": to_uint8(pred.rgb[v]),
             # Predicted labels: the last slot is the background slot.
-            "mask_pred": colorize_labels(pred["labels"][v] + 1, background=k),
+            "mask_pred": colorize_labels(pred.labels[v] + 1, background=k),
             "mask_gt": colorize_labels(sv.instances[v], background=0),
-            "depth_pred": colorize_depth(pred["depth_z"][v], lo, hi),
+            "depth_pred": colorize_depth(pred.depth_z[v], lo, hi),
             "depth_gt": colorize_depth(sv.depth_z[v], lo, hi),
         }
         kind = "recon" if v == inp else "novel"

@@ -103,10 +103,10 @@ def test_smoke_training_lowers_loss_and_writes_a_run(split, tmp_path):
     ds = MultiViewDataset(split, image_size=16)
     assert info.dataset["fingerprint"] == ds.fingerprint
     pred = predict_scene(model, ds, 1, input_view=2, chunk=100)
-    assert pred["rgb"].shape == (4, 16, 16, 3) and pred["slot_probs"].shape == (4, 16, 16, 4)
-    assert pred["labels"].shape == (4, 16, 16) and pred["labels"].dtype == torch.int64
-    torch.testing.assert_close(pred["depth_z"], pred["depth_t"] * ds[1].z_scale)
-    assert pred["input_view"] == 2 and pred["scene"] == 1
+    assert pred.rgb.shape == (4, 16, 16, 3) and pred.slot_probs.shape == (4, 16, 16, 4)
+    assert pred.labels.shape == (4, 16, 16) and pred.labels.dtype == torch.int64
+    torch.testing.assert_close(pred.depth_z, pred.depth_t * ds[1].z_scale)
+    assert pred.input_view == 2 and pred.scene == 1
     metrics = default_eval(model, ds, max_scenes=1)
     assert set(metrics) == {"psnr_input", "psnr_novel", "depth_abs_err", "n_scenes"}
     assert not any(math.isnan(v) for v in metrics.values())

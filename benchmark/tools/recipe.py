@@ -158,9 +158,9 @@ def make_eval_fn(
         for i in range(n):
             p = predict_scene(model, ds, i, input_view=input_view)
             sv = ds[i]
-            preds.append(p["labels"])
+            preds.append(p.labels)
             gts.append(sv.instances)
-            err = ((p["rgb"] - sv.images.permute(0, 2, 3, 1)) ** 2).mean(dim=(1, 2, 3))
+            err = ((p.rgb - sv.images.permute(0, 2, 3, 1)) ** 2).mean(dim=(1, 2, 3))
             mse_in.append(float(err[input_view]))
             others = [float(e) for v, e in enumerate(err) if v != input_view]
             if others:
@@ -334,11 +334,11 @@ def save_segmentation_grid(
         nv = (input_view + 1) % ds.n_views
         tiles = [
             to_uint8(sv.images[input_view].permute(1, 2, 0)),
-            to_uint8(p["rgb"][input_view]),
-            colorize_labels(p["labels"][input_view], background=model.cfg.num_slots - 1),
+            to_uint8(p.rgb[input_view]),
+            colorize_labels(p.labels[input_view], background=model.cfg.num_slots - 1),
             colorize_labels(sv.instances[input_view], background=0),
-            to_uint8(p["rgb"][nv]),
-            colorize_labels(p["labels"][nv], background=model.cfg.num_slots - 1),
+            to_uint8(p.rgb[nv]),
+            colorize_labels(p.labels[nv], background=model.cfg.num_slots - 1),
             colorize_labels(sv.instances[nv], background=0),
         ]
         rows.append(np.concatenate([np.pad(t, ((1, 1), (1, 1), (0, 0))) for t in tiles], 1))
