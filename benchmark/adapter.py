@@ -433,8 +433,8 @@ def predict_scene(
 
 
 def dataset_fingerprint(root: str | os.PathLike) -> str:
-    """SHA-256 (hex) over a split's manifest and scene JSONs (svorf's definition)."""
-    from svorf.data import dataset_fingerprint as fp
+    """SHA-256 (hex) over a split's manifest and scene JSONs (``scenefmt``'s definition)."""
+    from scenefmt import dataset_fingerprint as fp
 
     return fp(root)
 

@@ -40,7 +40,7 @@ import numpy as np
 
 from benchmark import adapter
 from benchmark.scales import ScaleSettings
-from scenefmt import SplitLayout, is_scene_complete, read_json, read_rgb, write_rgb
+from scenefmt import Manifest, SplitLayout, is_scene_complete, read_json, read_rgb, write_rgb
 
 __all__ = [
     "DATA_SOURCES",
@@ -119,17 +119,16 @@ def _complete(root: Path, n_scenes: int, resolution: int) -> tuple[bool, str]:
     if not manifest.is_file():
         return False, "no manifest.json"
     try:
-        m = read_json(manifest)
+        m = Manifest.from_json(read_json(manifest))
     except (OSError, ValueError) as err:
         return False, f"unreadable manifest ({err})"
-    res = m.get("resolution")
-    res = res[0] if isinstance(res, list) else res
-    if res is not None and int(res) != resolution:
+    res = m.image_hw[0]
+    if res != resolution:
         raise ValueError(
             f"{root}: holds {res}x{res} images but this scale needs {resolution}x{resolution}; "
             f"delete the folder or pass another --data"
         )
-    layout = SplitLayout(root, n_views=int(m.get("n_views", 4)))
+    layout = SplitLayout(root, n_views=m.n_views)
     done = [s for s in range(n_scenes) if is_scene_complete(layout, s)]
     if len(done) < n_scenes:
         return False, f"{len(done)}/{n_scenes} scenes complete"
@@ -373,9 +372,8 @@ def ensure_dataset(
         if not ok:
             raise RuntimeError(f"{root}: still incomplete after generation ({why})")
     manifest = read_json(root / "manifest.json")
-    n_views = int(manifest.get("n_views", 4))
-    res = manifest.get("resolution", settings.resolution)
-    res = int(res[0] if isinstance(res, list) else res)
+    mf = Manifest.from_json(manifest)
+    n_views, res = mf.n_views, mf.image_hw[0]
     samples, denoise, data_seed = _render_of(manifest)
     n_found = len(SplitLayout(root, n_views=n_views).scene_indices())  # what svorf.data loads
     actual_settings = {

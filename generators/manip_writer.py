@@ -9,7 +9,7 @@ written atomically and the scene JSON (with its ``"manipulation"`` record) goes 
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import replace
 
 import scenefmt
 from generators.manip import ManipEdit
@@ -27,11 +27,11 @@ def manip_manifest(
     seed: int,
     render: RenderSettings,
     status: str | None = None,
-) -> dict[str, Any]:
+) -> scenefmt.Manifest:
     """``manifest.json`` of a manipulation split: the ordinary manifest plus ``manip``
     (the variant files, the mask rule and the scene count the donors were drawn from)."""
-    d = manifest(preset, scenefmt.MANIP_SPLIT, n, resolution, seed, render, status)
-    d["manip"] = {
+    m = manifest(preset, scenefmt.MANIP_SPLIT, n, resolution, seed, render, status)
+    manip = {
         "n_scenes": int(n),
         "variants": list(scenefmt.MANIP_VARIANTS),
         "files": {
@@ -53,7 +53,7 @@ def manip_manifest(
         "edits": "sc%04d.json 'manipulation': moved object and offset, donor scene, its "
         "background, objects and lights",
     }
-    return d
+    return replace(m, extra={**m.extra, "manip": manip})
 
 
 def write_manip_scene(
@@ -62,7 +62,7 @@ def write_manip_scene(
     edit: ManipEdit,
     views: list[ViewImages],
     variants: dict[str, list[ViewImages]],
-) -> dict[str, Any]:
+) -> scenefmt.SceneRecord:
     """Write every file of manipulation scene ``spec.index``; the scene JSON last.
 
     Args:
@@ -73,7 +73,7 @@ def write_manip_scene(
         variants: ``{variant: views}`` for every one of ``scenefmt.MANIP_VARIANTS``.
 
     Returns:
-        The scene JSON written.
+        The scene record written.
     """
     missing = [v for v in scenefmt.MANIP_VARIANTS if v not in variants]
     if missing:
@@ -101,7 +101,7 @@ def write_manip_scene(
             scenefmt.manip_mask(variants["providing_bg"][v].ids != 0),
         )
     scenefmt.write_movement_txt(layout.movement(scene), *edit.move.offset)
-    d = spec.to_json([layout.rgb(scene, v).name for v in range(spec.n_views)])
-    d["manipulation"] = edit.to_json()
-    scenefmt.atomic_write_json(layout.scene_json(scene), d)
-    return d
+    rec = spec.record([layout.rgb(scene, v).name for v in range(spec.n_views)])
+    rec = replace(rec, extra={**rec.extra, "manipulation": edit.to_json()})
+    scenefmt.atomic_write_json(layout.scene_json(scene), rec.to_json())
+    return rec

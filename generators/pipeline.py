@@ -393,12 +393,12 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
         layout: scenefmt.SplitLayout = scenefmt.ManipLayout(out, n_views=preset.camera.n_views)
 
         def make_manifest(status: str) -> dict:
-            return manip_manifest(preset, n, cfg.resolution, cfg.seed, render, status)
+            return manip_manifest(preset, n, cfg.resolution, cfg.seed, render, status).to_json()
     else:
         layout = scenefmt.SplitLayout(out, n_views=preset.camera.n_views)
 
         def make_manifest(status: str) -> dict:
-            return manifest(preset, split, n, cfg.resolution, cfg.seed, render, status)
+            return manifest(preset, split, n, cfg.resolution, cfg.seed, render, status).to_json()
 
     new_manifest = make_manifest("in_progress")
     _check_existing_manifest(layout.manifest, new_manifest)

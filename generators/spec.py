@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+import scenefmt
 from generators import geometry
 from generators.presets import MATERIALS
 
@@ -477,37 +478,44 @@ class SceneSpec:
             ids.append(o.instance_id)
         return meshes, ids
 
-    def to_json(self, image_names: list[str] | None = None) -> dict[str, Any]:
-        """The scene JSON (``sc%04d.json``); ``image_names`` are the view file names."""
+    def record(self, image_names: list[str] | None = None) -> scenefmt.SceneRecord:
+        """The scene record (``sc%04d.json``); ``image_names`` are the view file names."""
         w = h = self.render.resolution
         if image_names is None:
             image_names = [f"view{v:02d}.png" for v in range(self.n_views)]
         used = sorted({o.material for o in self.objects})
-        d: dict[str, Any] = {
-            "format": "svorf-scene",
-            "preset": self.preset,
-            "split": self.split,
-            "index": self.index,
-            "seed": self.seed,
+        views = []
+        for v, n in zip(self.views, image_names, strict=True):
+            d = v.to_json(n, w, h)
+            views.append(scenefmt.ViewRecord.from_json(d))
+        extra: dict[str, Any] = {
             "scene_seed": self.scene_seed,
             "attempt": self.attempt,
             "rng": "numpy.random.default_rng(scene_seed) for attempt 0, "
             "default_rng([scene_seed, attempt]) otherwise",
-            "camera_convention": "opencv",
-            "depth": "planar_z",
             "world_up": "+z",
             "units": "world units (CLEVR Blender units); angles in degrees",
-            "objects": [o.to_json() for o in self.objects],
             "materials": {m: {"shader": "principled_bsdf", **MATERIALS[m]} for m in used},
             "lights": [light.to_json() for light in self.lights],
             "ground": self.ground.to_json(),
             "world": self.world.to_json(),
-            "views": [v.to_json(n, w, h) for v, n in zip(self.views, image_names, strict=True)],
             "render": self.render.to_json(),
         }
         for k, v in self.extra:
-            d[k] = v
-        return d
+            extra[k] = v
+        return scenefmt.SceneRecord(
+            preset=self.preset,
+            split=self.split,
+            index=self.index,
+            seed=self.seed,
+            views=tuple(views),
+            objects=tuple(o.to_json() for o in self.objects),
+            extra=extra,
+        )
+
+    def to_json(self, image_names: list[str] | None = None) -> dict[str, Any]:
+        """The scene JSON (``sc%04d.json``): :meth:`record` as a dict."""
+        return self.record(image_names).to_json()
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> SceneSpec:

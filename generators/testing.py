@@ -30,7 +30,7 @@ def write_raycast_split(
     render = RenderSettings(resolution=resolution, samples=1, denoise=False)
     out = Path(out)
     layout = SplitLayout(out, n_views=p.camera.n_views)
-    atomic_write_json(layout.manifest, manifest(p, split, n, resolution, seed, render))
+    atomic_write_json(layout.manifest, manifest(p, split, n, resolution, seed, render).to_json())
     for i in range(n):
         spec = make_scene(p, split, i, seed, render)
         write_scene(layout, spec, raycast_views(spec, resolution))
@@ -64,7 +64,8 @@ def write_raycast_manip_split(
     render = RenderSettings(resolution=resolution, samples=1, denoise=False)
     out = Path(out)
     layout = ManipLayout(out, n_views=p.camera.n_views)
-    atomic_write_json(layout.manifest, manip_manifest(p, n, resolution, seed, render, "complete"))
+    m = manip_manifest(p, n, resolution, seed, render, "complete")
+    atomic_write_json(layout.manifest, m.to_json())
     for i in range(n):
         spec, edit = make_manip_scene(p, i, n, seed, render)
         variants = {

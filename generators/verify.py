@@ -31,7 +31,9 @@ from scenefmt import (
     MASK_BG_LEVEL,
     MASK_SENTINEL_LEVEL,
     MIN_UORF_MASK_SIZE,
+    Manifest,
     ManipLayout,
+    SceneRecord,
     SplitLayout,
     read_depth_exr,
     read_instances,
@@ -103,10 +105,10 @@ def uorf_resize_problem(mask_path: str | Path, ids: np.ndarray) -> str | None:
     return None
 
 
-def _view_problems(layout: SplitLayout, meta: dict, s: int, v: int, res: int) -> list[str]:
+def _view_problems(layout: SplitLayout, meta: SceneRecord, s: int, v: int, res: int) -> list[str]:
     out: list[str] = []
     stem = layout.stem(s, v)
-    ids_json = {int(o["instance_id"]) for o in meta.get("objects", [])}
+    ids_json = {int(o["instance_id"]) for o in meta.objects}
     try:
         rgb = read_rgb(layout.rgb(s, v))
         with Image.open(layout.rgb(s, v)) as im:
@@ -154,21 +156,19 @@ def _view_problems(layout: SplitLayout, meta: dict, s: int, v: int, res: int) ->
             hit = ids > 0
             if not (np.isfinite(depth[hit]).all() and (depth[hit] > 0).all()):
                 out.append(f"depth/{stem}.exr: non-finite or non-positive depth on object pixels")
-            if meta.get("ground") is not None and not np.isfinite(depth).all():
+            if meta.extra.get("ground") is not None and not np.isfinite(depth).all():
                 out.append(f"depth/{stem}.exr: {int((~np.isfinite(depth)).sum())} pixels miss "
                            "the ground")  # fmt: skip
-        vm = meta["views"][v]
-        if Path(vm.get("image", "")).name != layout.rgb(s, v).name:
-            out.append(
-                f"sc{s:04d}.json: view {v} image {vm.get('image')!r} != {layout.rgb(s, v).name}"
-            )
-        c2w = np.asarray(vm["cam_to_world"], dtype=np.float64)
+        vm = meta.views[v]
+        if Path(vm.image).name != layout.rgb(s, v).name:
+            out.append(f"sc{s:04d}.json: view {v} image {vm.image!r} != {layout.rgb(s, v).name}")
+        c2w = np.asarray(vm.cam_to_world, dtype=np.float64)
         if not np.allclose(read_matrix_txt(layout.rt(s, v)), c2w, atol=1e-8):
             out.append(f"{stem}_RT.txt: differs from sc{s:04d}.json cam_to_world")
-        azi = geometry.azimuth_rotation(float(vm["azimuth_deg"]))
+        azi = geometry.azimuth_rotation(float(vm.extra["azimuth_deg"]))
         if not np.allclose(read_matrix_txt(layout.azi_rot(s, v)), azi, atol=1e-8):
             out.append(f"{stem}_azi_rot.txt: differs from the JSON azimuth")
-        K = np.asarray(vm["K"], dtype=np.float64)
+        K = np.asarray(vm.K, dtype=np.float64)
         if (
             K.shape != (3, 3)
             or not np.isclose(K[0, 2], res / 2)
@@ -194,11 +194,13 @@ def verify_split(root: str | Path, *, max_problems: int = 200) -> list[str]:
     if not mpath.is_file():
         return [f"{mpath}: missing"]
     try:
-        mf = read_json(mpath)
-        n, n_views, res = int(mf["n_scenes"]), int(mf["n_views"]), int(mf["resolution"])
-    except (OSError, ValueError, KeyError, TypeError) as e:
+        mf = Manifest.from_json(read_json(mpath))
+    except (OSError, ValueError) as e:
         return [f"{mpath}: unreadable or incomplete ({e})"]
-    manip = mf.get("split") == MANIP_SPLIT
+    n, n_views, (res, w) = mf.n_scenes, mf.n_views, mf.image_hw
+    if w != res:
+        return [f"{mpath}: resolution {res}x{w} is not square (views are square)"]
+    manip = mf.split == MANIP_SPLIT
     layout = (ManipLayout if manip else SplitLayout)(root, n_views=n_views)
     problems: list[str] = []
     for s in range(n):
@@ -209,24 +211,23 @@ def verify_split(root: str | Path, *, max_problems: int = 200) -> list[str]:
             )
             continue
         try:
-            meta = read_json(layout.scene_json(s))
+            raw = read_json(layout.scene_json(s))
+            meta = SceneRecord.from_json(raw)
         except (OSError, ValueError) as e:
             problems.append(f"sc{s:04d}.json: unreadable ({e})")
             continue
         for key, want in (("camera_convention", "opencv"), ("depth", "planar_z"),
-                          ("index", s), ("preset", mf.get("preset")), ("seed", mf.get("seed"))):  # fmt: skip
-            if meta.get(key) != want:
-                problems.append(f"sc{s:04d}.json: {key}={meta.get(key)!r}, expected {want!r}")
-        if len(meta.get("views", [])) != n_views:
-            problems.append(
-                f"sc{s:04d}.json: {len(meta.get('views', []))} views, expected {n_views}"
-            )
+                          ("index", s), ("preset", mf.preset), ("seed", mf.seed)):  # fmt: skip
+            if raw.get(key) != want:
+                problems.append(f"sc{s:04d}.json: {key}={raw.get(key)!r}, expected {want!r}")
+        if meta.n_views != n_views:
+            problems.append(f"sc{s:04d}.json: {meta.n_views} views, expected {n_views}")
             continue
         for v in range(n_views):
             problems += _view_problems(layout, meta, s, v, res)
         if manip:
             assert isinstance(layout, ManipLayout)
-            problems += manip_scene_problems(layout, meta, s, res)
+            problems += manip_scene_problems(layout, raw, s, res)
         if len(problems) >= max_problems:
             return problems[:max_problems] + ["... (stopped)"]
     known = {layout.rgb(s, v).name for s in range(n) for v in range(n_views)}

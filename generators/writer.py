@@ -8,14 +8,14 @@ Every file is written to a temp file beside its target and renamed into place
 is true only once every file of the scene is in place. A kill at any moment leaves
 either a complete scene or an incomplete one that the next run renders again.
 
-:func:`manifest` builds ``manifest.json``; it holds no clock or host fields, so two
-runs of the same command write identical bytes.
+:func:`manifest` builds the split's :class:`scenefmt.Manifest`; it holds no clock or host
+fields, so two runs of the same command write identical bytes. Scene records are
+:class:`scenefmt.SceneRecord` (``SceneSpec.record``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -51,7 +51,7 @@ def manifest(
     seed: int,
     render: RenderSettings,
     status: str | None = None,
-) -> dict[str, Any]:
+) -> scenefmt.Manifest:
     """The ``manifest.json`` of a split (documented in ``docs/format.md``).
 
     Args:
@@ -63,23 +63,16 @@ def manifest(
         render: render settings of every scene.
         status: optional ``"in_progress"`` / ``"complete"`` (deterministic, no clock).
     """
-    d: dict[str, Any] = {
-        "format": "svorf-dataset",
-        "format_version": scenefmt.FORMAT_VERSION,
-        "generator": f"generators {GENERATOR_VERSION}",
-        "generator_version": GENERATOR_VERSION,
-        "preset": preset.name,
-        "description": preset.description,
-        "split": split,
-        "n_scenes": int(n),
-        "n_views": preset.camera.n_views,
-        "resolution": int(resolution),
-        "seed": int(seed),
-        "scene_seed_rule": "seed * 1_000_000 + split_code * 100_000 + index (train 0, test 1)",
-        "num_slots": preset.num_slots,
-        "grayscale": preset.grayscale,
-        "render": render.to_json(),
-        "conventions": {
+    return scenefmt.Manifest(
+        preset=preset.name,
+        split=split,
+        n_scenes=int(n),
+        n_views=preset.camera.n_views,
+        resolution=int(resolution),
+        seed=int(seed),
+        generator=f"generators {GENERATOR_VERSION}",
+        status=status,
+        conventions={
             "camera_convention": "opencv",
             "cam_to_world": "4x4, columns = camera x (right), y (down), z (forward), centre",
             "intrinsics": "K = [[f,0,W/2],[0,f,H/2],[0,0,1]], f = lens_mm/sensor_width_mm*W, "
@@ -98,32 +91,37 @@ def manifest(
             "rgb": "8-bit sRGB (sRGB OETF of linear Cycles output)",
             "azi_rot": "3x3 rotation about world z by the view azimuth",
         },
-        "files": {
-            "rgb": "{idx:05d}_sc{scene:04d}_az{view:02d}.png",
-            "rt": "{stem}_RT.txt",
-            "azi_rot": "{stem}_azi_rot.txt",
-            "mask": "{stem}_mask.png",
-            "instances": "instances/{stem}.png",
-            "depth": "depth/{stem}.exr",
-            "scene": "sc{scene:04d}.json",
+        extra={
+            "format": scenefmt.MANIFEST_FORMAT,
+            "generator_version": GENERATOR_VERSION,
+            "description": preset.description,
+            "scene_seed_rule": "seed * 1_000_000 + split_code * 100_000 + index (train 0, test 1)",
+            "num_slots": preset.num_slots,
+            "grayscale": preset.grayscale,
+            "render": render.to_json(),
+            "files": {
+                "rgb": "{idx:05d}_sc{scene:04d}_az{view:02d}.png",
+                "rt": "{stem}_RT.txt",
+                "azi_rot": "{stem}_azi_rot.txt",
+                "mask": "{stem}_mask.png",
+                "instances": "instances/{stem}.png",
+                "depth": "depth/{stem}.exr",
+                "scene": "sc{scene:04d}.json",
+            },
+            "preset_config": preset.to_json(),
         },
-        "preset_config": preset.to_json(),
-    }
-    if status is not None:
-        d["status"] = status
-    return d
+    )
 
 
-def grayscale_json(scene_json: dict[str, Any], preset_name: str, rgb_source: str) -> dict[str, Any]:
-    """Scene JSON of the grayscale variant: the colour scene's JSON with ``preset``
+def grayscale_json(
+    record: scenefmt.SceneRecord, preset_name: str, rgb_source: str
+) -> scenefmt.SceneRecord:
+    """Scene record of the grayscale variant: the colour scene's record with ``preset``
     renamed and ``grayscale`` (the formula) and ``rgb_source`` added."""
     if rgb_source not in ("converted", "rendered"):
         raise ValueError(f"rgb_source must be 'converted' or 'rendered', got {rgb_source!r}")
-    out = dict(scene_json)
-    out["preset"] = preset_name
-    out["grayscale"] = GRAYSCALE_FORMULA
-    out["rgb_source"] = rgb_source
-    return out
+    extra = {**record.extra, "grayscale": GRAYSCALE_FORMULA, "rgb_source": rgb_source}
+    return replace(record, preset=preset_name, extra=extra)
 
 
 def write_scene(
@@ -132,7 +130,7 @@ def write_scene(
     views: list[ViewImages],
     *,
     grayscale_preset: str | None = None,
-) -> dict[str, Any]:
+) -> scenefmt.SceneRecord:
     """Write every file of scene ``spec.index``; the scene JSON last.
 
     Args:
@@ -144,15 +142,15 @@ def write_scene(
             ``"rendered"``).
 
     Returns:
-        The scene JSON written.
+        The scene record written.
     """
     write_view_files(layout, spec, views, grayscale=grayscale_preset is not None)
     scene = spec.index
-    d = spec.to_json([layout.rgb(scene, v).name for v in range(spec.n_views)])
+    rec = spec.record([layout.rgb(scene, v).name for v in range(spec.n_views)])
     if grayscale_preset:
-        d = grayscale_json(d, grayscale_preset, "rendered")
-    scenefmt.atomic_write_json(layout.scene_json(scene), d)
-    return d
+        rec = grayscale_json(rec, grayscale_preset, "rendered")
+    scenefmt.atomic_write_json(layout.scene_json(scene), rec.to_json())
+    return rec
 
 
 def write_view_files(
@@ -189,7 +187,7 @@ def write_view_files(
 
 def convert_scene_grayscale(
     src: scenefmt.SplitLayout, dst: scenefmt.SplitLayout, scene: int, preset_name: str
-) -> dict[str, Any]:
+) -> scenefmt.SceneRecord:
     """Make scene ``scene`` of ``dst`` from the complete colour scene of ``src``.
 
     Every file except the RGB images is copied byte for byte (the depth EXR
@@ -204,6 +202,7 @@ def convert_scene_grayscale(
         for name in ("rt", "azi_rot", "mask", "instances", "depth"):
             data = getattr(src, name)(scene, v).read_bytes()
             scenefmt.atomic_write_bytes(getattr(dst, name)(scene, v), data)
-    d = grayscale_json(scenefmt.read_json(src.scene_json(scene)), preset_name, "converted")
-    scenefmt.atomic_write_json(dst.scene_json(scene), d)
-    return d
+    colour = scenefmt.SceneRecord.from_json(scenefmt.read_json(src.scene_json(scene)))
+    rec = grayscale_json(colour, preset_name, "converted")
+    scenefmt.atomic_write_json(dst.scene_json(scene), rec.to_json())
+    return rec

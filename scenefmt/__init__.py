@@ -16,10 +16,16 @@ Layout of one split folder (e.g. ``data/clevr567/train/``)::
     sc{scene:04d}.json                               full scene record (written last)
     manifest.json                                    split-level metadata
 
+The two JSON files are :class:`SceneRecord` and :class:`Manifest` (``records.py``), which
+every writer builds and every reader reads; :func:`dataset_fingerprint` hashes them.
+``errors.py`` holds :class:`DatasetError` (a split folder that cannot be read, one line
+naming the fix) and ``uorf.py`` the reader of plain uORF-layout folders.
+
 ``idx`` is the global view index ``scene * n_views + view``. A manipulation split
 (``generate --split manip``) adds uORF's manipulation files: see :class:`ManipLayout`.
 """
 
+from scenefmt.errors import DatasetError, missing_file, read_file
 from scenefmt.io import (
     atomic_write_bytes,
     atomic_write_json,
@@ -55,9 +61,18 @@ from scenefmt.layout import (
     sentinel_size,
     uorf_mask_from_instances,
 )
+from scenefmt.records import (
+    MANIFEST_FORMAT,
+    SCENE_FORMAT,
+    Manifest,
+    SceneRecord,
+    ViewRecord,
+    dataset_fingerprint,
+)
 
 __all__ = [
     "FORMAT_VERSION",
+    "MANIFEST_FORMAT",
     "MANIP_MASK_OFF",
     "MANIP_MASK_ON",
     "MANIP_SPLIT",
@@ -65,16 +80,24 @@ __all__ = [
     "MASK_BG_LEVEL",
     "MASK_SENTINEL_LEVEL",
     "MIN_UORF_MASK_SIZE",
+    "SCENE_FORMAT",
+    "DatasetError",
+    "Manifest",
     "ManipLayout",
+    "SceneRecord",
     "SplitLayout",
+    "ViewRecord",
     "atomic_write_bytes",
     "atomic_write_json",
+    "dataset_fingerprint",
     "default_file_mode",
     "instances_from_uorf_mask",
     "is_scene_complete",
     "manip_mask",
+    "missing_file",
     "mkstemp_beside",
     "read_depth_exr",
+    "read_file",
     "read_instances",
     "read_json",
     "read_matrix_txt",

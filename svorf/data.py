@@ -2,14 +2,15 @@
 
 Where this sits: ``dataset on disk -> svorf.data -> model``. :class:`MultiViewDataset`
 reads a generated split folder (the :mod:`scenefmt` contract; a plain uORF-layout folder
-through ``svorf.uorf_reader``) once into memory, optionally resized to the training
+through ``scenefmt.uorf``) once into memory, optionally resized to the training
 resolution, and computes the rays of any pixel from the cameras. :class:`RaySampler`
 draws the training batches of the paper's setup (one input view per scene, ``R`` random
 rays from the scene's other views), the pixels picked by a strategy of
 :data:`RAY_SAMPLING` (``svorf.ray_sampling``: ``"uniform"`` = paper; label-free
 ``"object_heavy"``, ``"object_contrast"`` and ``"error_driven"`` with its
-:class:`ErrorMap`). Unreadable folders raise :class:`DatasetError`
-(``svorf.dataset_errors``). The names of those three modules stay importable from here.
+:class:`ErrorMap`). Unreadable folders raise :class:`DatasetError` (``scenefmt.errors``).
+The public names of ``svorf.ray_sampling``, ``DatasetError``, the uORF reader's constants and
+``scenefmt.dataset_fingerprint`` stay importable from here.
 
 Conventions (all tensors are float32 unless said otherwise):
 
@@ -44,7 +45,6 @@ Glossary: B scenes, V views, H x W pixels, R rays per scene, K slots.
 
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -55,8 +55,25 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from scenefmt import SplitLayout, read_depth_exr, read_instances, read_json, read_rgb
-from svorf.dataset_errors import DatasetError, missing_file, read_file
+from scenefmt import (
+    DatasetError,
+    Manifest,
+    SceneRecord,
+    SplitLayout,
+    dataset_fingerprint,
+    missing_file,
+    read_depth_exr,
+    read_file,
+    read_instances,
+    read_json,
+    read_rgb,
+)
+from scenefmt.uorf import (
+    UORF_EXCLUDED_SUFFIXES,
+    UORF_FOV_DEG,
+    read_uorf_scene,
+    uorf_view_files,
+)
 from svorf.ray_sampling import (
     CONTRAST_KERNEL,
     CONTRAST_THRESHOLD,
@@ -76,15 +93,8 @@ from svorf.ray_sampling import (
     register_ray_sampling,
     salient_pixels,
 )
-from svorf.uorf_reader import (
-    UORF_EXCLUDED_SUFFIXES,
-    UORF_FOV_DEG,
-    read_uorf_scene,
-    uorf_view_files,
-)
 
-# With the names re-exported from svorf.ray_sampling, svorf.uorf_reader and
-# svorf.dataset_errors (their old home).
+# With the names re-exported from svorf.ray_sampling and scenefmt (their old home).
 __all__ = [
     "CONTRAST_KERNEL",
     "CONTRAST_THRESHOLD",
@@ -239,25 +249,6 @@ class SceneViews:
     z_scale: Tensor
 
 
-def dataset_fingerprint(root: str | os.PathLike) -> str:
-    """SHA-256 over ``manifest.json`` and every ``sc*.json`` of a split (hex string).
-
-    The scene JSONs record every random draw and camera, so two folders with the same
-    fingerprint hold the same scenes (render noise aside). For uORF-layout folders
-    (no JSON) the hash runs over the sorted view-image names and ``_RT.txt`` contents.
-    """
-    root = Path(root)
-    h = hashlib.sha256()
-    files = [root / "manifest.json"] if (root / "manifest.json").is_file() else []
-    files += sorted(root.glob("sc[0-9][0-9][0-9][0-9].json"))
-    if not files:
-        files = sorted(root.glob("*_RT.txt"))
-    for p in files:
-        h.update(p.name.encode() + b"\0")
-        h.update(p.read_bytes() + b"\0")
-    return h.hexdigest()
-
-
 def _as_hw(size: int | Sequence[int] | None) -> tuple[int, int] | None:
     if size is None:
         return None
@@ -287,7 +278,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
             with axes ``uorf_axes``; ``{stem}_depth.npy`` (optional) holds planar z, else
             depth is NaN; instance ids come from ``{stem}_mask.png`` by uORF's
             second-lowest-grey-level background rule (see
-            ``svorf.uorf_reader.uorf_instance_ids``), all background when the mask is
+            ``scenefmt.uorf.uorf_instance_ids``), all background when the mask is
             absent. The folder fingerprint hashes the ``_RT.txt`` files.
         uorf_fov_deg: field of view (x, y) or one value for both, in degrees, used to
             build ``K`` for uORF-layout folders. Default: uORF's own projection.
@@ -333,7 +324,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
             raise ValueError(f"uorf_axes must be 'opencv' or 'opengl', got {uorf_axes!r}")
         self.uorf_layout = uorf_layout
         self.truth = bool(truth)
-        self.manifest: dict = {}
+        self.manifest: Manifest | None = None  # None for uORF-layout folders
         self._only = None if scenes is None else {int(x) for x in scenes}
         if uorf_layout:
             loaded = self._load_uorf(max_scenes, uorf_fov_deg, uorf_axes)
@@ -386,12 +377,16 @@ class MultiViewDataset(torch.utils.data.Dataset):
         if not manifest_path.is_file():
             raise missing_file(manifest_path, self.root)
         try:
-            self.manifest = read_json(manifest_path)
+            raw = read_json(manifest_path)
         except (OSError, ValueError) as e:
             raise DatasetError(
                 f"{manifest_path}: unreadable JSON ({e}); run `generate verify {self.root}`"
             ) from e
-        n_views = int(self.manifest.get("n_views", 4))
+        try:
+            self.manifest = Manifest.from_json(raw)
+        except ValueError as e:
+            raise DatasetError(f"{manifest_path}: {e}; run `generate verify {self.root}`") from e
+        n_views = self.manifest.n_views
         layout = SplitLayout(self.root, n_views=n_views)
         scenes = layout.scene_indices()
         if not scenes:
@@ -399,8 +394,8 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 f"{self.root}: no sc%04d.json scene files - not a generated split folder "
                 f"(run `generate verify {self.root}`)"
             )
-        if "n_scenes" in self.manifest and len(scenes) < int(self.manifest["n_scenes"]):
-            expected = set(range(int(self.manifest["n_scenes"])))
+        if len(scenes) < self.manifest.n_scenes:
+            expected = set(range(self.manifest.n_scenes))
             first = min(expected - set(scenes), default=None)
             if first is not None:
                 raise missing_file(layout.scene_json(first), self.root)
@@ -416,36 +411,33 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 if p not in gt and not p.is_file():
                     raise missing_file(p, self.root)
             jpath = layout.scene_json(s)
-            meta = read_file(read_json, jpath, self.root)
-            if not isinstance(meta, dict):
-                raise DatasetError(f"{jpath}: not a scene record (a JSON object expected)")
-            conv = meta.get("camera_convention", "opencv")
-            if conv != "opencv":
-                raise DatasetError(f"{jpath}: camera_convention {conv!r} is not 'opencv'")
-            dconv = meta.get("depth", "planar_z")
-            if dconv != "planar_z":
-                raise DatasetError(f"{jpath}: depth convention {dconv!r} is not 'planar_z'")
-            views = meta.get("views")
-            if not isinstance(views, list) or len(views) != n_views:
-                got = len(views) if isinstance(views, list) else "no"
-                raise DatasetError(f"{jpath}: expected {n_views} entries in 'views', got {got}")
+            raw = read_file(read_json, jpath, self.root)
+            try:
+                meta = SceneRecord.from_json(raw)
+            except ValueError as e:
+                raise DatasetError(f"{jpath}: not a valid scene record ({e})") from e
+            if meta.camera_convention != "opencv":
+                raise DatasetError(
+                    f"{jpath}: camera_convention {meta.camera_convention!r} is not 'opencv'"
+                )
+            if meta.depth != "planar_z":
+                raise DatasetError(f"{jpath}: depth convention {meta.depth!r} is not 'planar_z'")
+            if meta.n_views != n_views:
+                raise DatasetError(
+                    f"{jpath}: expected {n_views} entries in 'views', got {meta.n_views}"
+                )
             s_rgb, s_ids, s_depth, s_K, s_c2w = [], [], [], [], []
-            for view, vm in enumerate(views):
+            for view, vm in enumerate(meta.views):
                 try:
-                    Kv = np.asarray(vm["K"], dtype=np.float64)
-                    Tv = np.asarray(vm["cam_to_world"], dtype=np.float64)
-                except (KeyError, TypeError, ValueError) as e:
+                    Kv = np.asarray(vm.K, dtype=np.float64)
+                    Tv = np.asarray(vm.cam_to_world, dtype=np.float64)
+                except (TypeError, ValueError) as e:
                     raise DatasetError(
                         f"{jpath}: view {view} lacks a valid K / cam_to_world ({e})"
                     ) from e
-                if Kv.shape != (3, 3) or Tv.shape != (4, 4):
+                if vm.image and Path(vm.image).name != layout.rgb(s, view).name:
                     raise DatasetError(
-                        f"{jpath}: view {view} K must be 3x3 and cam_to_world 4x4, "
-                        f"got {Kv.shape} and {Tv.shape}"
-                    )
-                if "image" in vm and Path(vm["image"]).name != layout.rgb(s, view).name:
-                    raise DatasetError(
-                        f"{jpath}: view {view} image {vm['image']!r} does not match the "
+                        f"{jpath}: view {view} image {vm.image!r} does not match the "
                         f"layout name {layout.rgb(s, view).name!r}"
                     )
                 img = read_file(read_rgb, layout.rgb(s, view), self.root)
@@ -561,7 +553,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
     @property
     def preset(self) -> str | None:
         """The manifest's preset (``None`` for uORF-layout folders)."""
-        return self.manifest.get("preset")
+        return None if self.manifest is None else self.manifest.preset
 
 
 @dataclass(frozen=True)

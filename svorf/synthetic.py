@@ -30,8 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from scenefmt import (
-    FORMAT_VERSION,
+    Manifest,
+    SceneRecord,
     SplitLayout,
+    ViewRecord,
     atomic_write_json,
     uorf_mask_from_instances,
     write_depth_exr,
@@ -232,53 +234,51 @@ def write_synthetic_split(
             write_instances(layout.instances(scene, view), ids)
             write_depth_exr(layout.depth(scene, view), depth_z)
             views.append(
-                {
-                    "view": view,
-                    "image": layout.rgb(scene, view).name,
-                    "K": K.tolist(),
-                    "cam_to_world": c2w.tolist(),
-                    "azimuth_deg": math.degrees(azimuth),
-                    "elevation_deg": RIG_ELEVATION_DEG,
-                    "radius": RIG_RADIUS,
-                    "look_at": [0.0, 0.0, 0.0],
-                    "lens_mm": 50.0,
-                    "sensor_width_mm": 36.0,
-                    "sensor_fit": "HORIZONTAL",
-                }
+                ViewRecord(
+                    image=layout.rgb(scene, view).name,
+                    K=K.tolist(),
+                    cam_to_world=c2w.tolist(),
+                    extra={
+                        "view": view,
+                        "azimuth_deg": math.degrees(azimuth),
+                        "elevation_deg": RIG_ELEVATION_DEG,
+                        "radius": RIG_RADIUS,
+                        "look_at": [0.0, 0.0, 0.0],
+                        "lens_mm": 50.0,
+                        "sensor_width_mm": 36.0,
+                        "sensor_fit": "HORIZONTAL",
+                    },
+                )
             )
-        atomic_write_json(
-            layout.scene_json(scene),
-            {
-                "format": "svorf-scene",
-                "seed": seed,
-                "preset": preset,
-                "split": split,
-                "index": scene,
-                "objects": objects,
+        record = SceneRecord(
+            preset=preset,
+            split=split,
+            index=scene,
+            seed=seed,
+            views=tuple(views),
+            objects=tuple(objects),
+            extra={
                 "lights": [{"type": "directional", "direction": _LIGHT_DIR.tolist()}],
-                "views": views,
-                "camera_convention": "opencv",
-                "depth": "planar_z",
+                # [h, w] as these files always had it (an int elsewhere); changing it
+                # would change every synthetic split's fingerprint.
                 "render": {"engine": "svorf.synthetic (analytic ray cast)", "resolution": [h, w]},
             },
         )
-    atomic_write_json(
-        layout.manifest,
-        {
-            "format_version": FORMAT_VERSION,
-            "preset": preset,
-            "split": split,
-            "n_scenes": n_scenes,
-            "n_views": n_views,
-            "resolution": [h, w],
-            "seed": seed,
-            "generator": "svorf.synthetic",
-            "conventions": {
-                "camera": "opencv: x right, y down, z forward; z-up world; cam_to_world",
-                "intrinsics": "pixel units, pixel centres at (u + 0.5, v + 0.5)",
-                "depth": "planar_z: camera z in world units, inf = no surface",
-                "instances": "0 = background, k = objects[k-1] of the scene JSON",
-            },
+        atomic_write_json(layout.scene_json(scene), record.to_json())
+    manifest = Manifest(
+        preset=preset,
+        split=split,
+        n_scenes=n_scenes,
+        n_views=n_views,
+        resolution=(h, w),  # written as [h, w] (see above); Manifest.image_hw reads it
+        seed=seed,
+        generator="svorf.synthetic",
+        conventions={
+            "camera": "opencv: x right, y down, z forward; z-up world; cam_to_world",
+            "intrinsics": "pixel units, pixel centres at (u + 0.5, v + 0.5)",
+            "depth": "planar_z: camera z in world units, inf = no surface",
+            "instances": "0 = background, k = objects[k-1] of the scene JSON",
         },
     )
+    atomic_write_json(layout.manifest, manifest.to_json())
     return layout.root

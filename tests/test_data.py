@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from scenefmt import SplitLayout, read_json
+from scenefmt.uorf import uorf_instance_ids
 from svorf.data import (
     RAY_SAMPLING,
     DatasetError,
@@ -21,7 +22,6 @@ from svorf.data import (
     register_ray_sampling,
 )
 from svorf.synthetic import write_synthetic_split
-from svorf.uorf_reader import uorf_instance_ids
 
 
 @pytest.fixture(autouse=True, scope="module")

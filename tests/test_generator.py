@@ -16,6 +16,7 @@ from generators.verify import verify_split
 from scenefmt import (
     MASK_BG_LEVEL,
     MASK_SENTINEL_LEVEL,
+    SceneRecord,
     SplitLayout,
     atomic_write_json,
     read_instances,
@@ -266,10 +267,10 @@ def test_gray_scene_json_differs_only_by_flags():
     from generators.imageops import GRAYSCALE_FORMULA, grayscale_rec601
     from generators.writer import grayscale_json
 
-    d = {"preset": "clevr567", "seed": 0, "objects": []}
+    d = SceneRecord.from_json({"preset": "clevr567", "seed": 0, "objects": [], "views": []})
     g = grayscale_json(d, "clevr567-gray", "converted")
-    assert g == {**d, "preset": "clevr567-gray", "grayscale": GRAYSCALE_FORMULA,
-                 "rgb_source": "converted"}  # fmt: skip
+    assert g.to_json() == {**d.to_json(), "preset": "clevr567-gray",
+                           "grayscale": GRAYSCALE_FORMULA, "rgb_source": "converted"}  # fmt: skip
     rgb = np.array([[[255, 0, 0], [0, 255, 0], [0, 0, 255], [10, 20, 30]]], np.uint8)
     y = grayscale_rec601(rgb)
     assert y[..., 0].tolist() == [[76, 150, 29, 18]] and (y == y[..., :1]).all()

@@ -152,3 +152,53 @@ def test_scene_complete_only_with_json_last(tmp_path):
     lay.scene_json(0).write_text("{}")
     assert is_scene_complete(lay, 0)
     assert lay.scene_indices() == [0]
+
+
+# ----------------------------------------------------------------- scene record, manifest
+
+
+def test_records_read_back_exactly_what_every_writer_wrote(tmp_path):
+    """Scene records and manifests of the generator (ray-cast and manip fixtures) and of
+    svorf.synthetic ([h, w] resolution) round-trip through the dataclasses unchanged."""
+    from generators.testing import write_raycast_manip_split, write_raycast_split
+    from scenefmt import Manifest, SceneRecord, SplitLayout, dataset_fingerprint, read_json
+    from svorf.synthetic import write_synthetic_split
+
+    roots = [
+        write_raycast_split(tmp_path / "rc", n=1, resolution=32),
+        write_raycast_manip_split(tmp_path / "manip", n=2, resolution=32),
+        write_synthetic_split(tmp_path / "syn", n_scenes=1, resolution=16),
+    ]
+    for root in roots:
+        m = read_json(root / "manifest.json")
+        mf = Manifest.from_json(m)
+        assert mf.to_json() == m
+        d = read_json(SplitLayout(root).scene_json(0))
+        rec = SceneRecord.from_json(d)
+        assert rec.to_json() == d and rec.n_views == mf.n_views == 4
+        assert rec.views[0].image == "00000_sc0000_az00.png" and len(rec.views[0].K) == 3
+        assert len(dataset_fingerprint(root)) == 64
+    assert Manifest.from_json(read_json(roots[0] / "manifest.json")).image_hw == (32, 32)
+    syn = Manifest.from_json(read_json(roots[2] / "manifest.json"))
+    assert syn.resolution == (16, 16) and syn.image_hw == (16, 16)
+    assert (
+        "manipulation"
+        in SceneRecord.from_json(read_json(SplitLayout(roots[1]).scene_json(0))).extra
+    )
+
+
+def test_records_read_old_files_and_name_what_is_wrong():
+    from scenefmt import Manifest, SceneRecord
+
+    view = {"K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "cam_to_world": [[0] * 4] * 4}
+    old = SceneRecord.from_json({"preset": "p", "split": "train", "index": 0, "seed": 0,
+                                 "views": [view]})  # fmt: skip
+    assert (old.camera_convention, old.depth) == ("opencv", "planar_z")
+    with pytest.raises(ValueError, match="view 0: K: expected a 3x3"):
+        SceneRecord.from_json({"views": [{**view, "K": [[1, 0], [0, 1]]}]})
+    with pytest.raises(ValueError, match="'views' must be a list"):
+        SceneRecord.from_json({"views": None})
+    with pytest.raises(ValueError, match="'n_views' must be an integer"):
+        Manifest.from_json({"n_scenes": 1, "resolution": 32})
+    with pytest.raises(ValueError, match="'resolution' must be an integer or"):
+        Manifest.from_json({"n_scenes": 1, "n_views": 4, "resolution": "32"})

@@ -153,7 +153,7 @@ def _render_split(
         s = written
         m = manifest(preset, s.split, len(specs), s.render.resolution, s.seed, s.render,
                      "complete")  # fmt: skip
-        scenefmt.atomic_write_json(Path(out_dir) / "manifest.json", m)
+        scenefmt.atomic_write_json(Path(out_dir) / "manifest.json", m.to_json())
     return render_s
 
 

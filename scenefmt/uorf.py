@@ -1,9 +1,10 @@
 """Reader of plain uORF-layout split folders (PNG views, ``_RT.txt`` cameras, grey masks).
 
-Where this sits: below ``svorf.data``; ``MultiViewDataset(root, uorf_layout=True)`` asks
-:func:`uorf_view_files` which view images the folder holds and :func:`read_uorf_scene`
-for each scene's arrays, then resizes and serves them like a split of our own layout.
-Failures are :class:`~svorf.dataset_errors.DatasetError` lines.
+Where this sits: in the format layer (numpy and PIL, no torch), below ``svorf.data``;
+``MultiViewDataset(root, uorf_layout=True)`` asks :func:`uorf_view_files` which view images
+the folder holds and :func:`read_uorf_scene` for each scene's arrays, then resizes and
+serves them like a split of our own layout. Failures are
+:class:`~scenefmt.errors.DatasetError` lines.
 
 The layout stores no manifest, scene JSON, intrinsics or depth. What this reader assumes
 (uORF's loader and projection, which store none of it):
@@ -32,8 +33,9 @@ from typing import NamedTuple
 import numpy as np
 from PIL import Image
 
-from scenefmt import read_matrix_txt, read_rgb, sentinel_size
-from svorf.dataset_errors import DatasetError, read_file
+from scenefmt.errors import DatasetError, read_file
+from scenefmt.io import read_matrix_txt, read_rgb
+from scenefmt.layout import sentinel_size
 
 __all__ = [
     "UORF_EXCLUDED_SUFFIXES",

@@ -1,9 +1,10 @@
 """``DatasetError`` and the one-line messages of a split folder that cannot be read.
 
-Where this sits: below the two split readers, ``svorf.data`` (our layout, the
-:mod:`scenefmt` contract) and ``svorf.uorf_reader`` (the uORF layout). Both read every
-file through :func:`read_file` and report a missing one with :func:`missing_file`, so
-each failure is one :class:`DatasetError` line that names the file and the fix.
+Where this sits: in the format layer, below the two split readers, ``svorf.data`` (our
+layout) and :mod:`scenefmt.uorf` (the uORF layout). Both read every file through
+:func:`read_file` and report a missing one with :func:`missing_file`, so each failure is
+one :class:`DatasetError` line that names the file and the fix. ``svorf.data`` re-exports
+:class:`DatasetError`.
 """
 
 from __future__ import annotations
