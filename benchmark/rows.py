@@ -3,8 +3,9 @@ and the plain-words verdict of whether a measured model decomposes the scenes.
 
 Where this sits: a table protocol declares its rows as :class:`MeasuredRow`;
 :func:`benchmark.runner.run_table_protocol` scores them (through
-:class:`benchmark.context.Context`) and turns each result into a report row here. Every
-row's id is :func:`row_id`, which the other protocols use too.
+:class:`benchmark.context.Context`) and turns each result into a report :class:`Row` here
+(its :meth:`Row.to_dict` is the JSON the report holds). Every row's id is :func:`row_id`,
+which the other protocols use too.
 
 Measured rows with ARI / FG-ARI also carry the scene-shuffle control
 (:data:`benchmark.evaluate.CONTROL_KEYS`), and :func:`verdicts_for` says a row
@@ -13,7 +14,8 @@ decomposes only if its FG-ARI beats both the chance baselines and that control.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 from benchmark.context import ModelRecord
@@ -24,6 +26,7 @@ from benchmark.scales import ScaleSettings
 
 __all__ = [
     "MeasuredRow",
+    "Row",
     "chance_baseline_rows",
     "measured_row",
     "row_id",
@@ -59,6 +62,56 @@ def row_id(table: str, model: str, dataset: str, source: str) -> str:
     return f"{table}|{model}|{dataset}|{source}"
 
 
+@dataclass(frozen=True)
+class Row:
+    """One row of a report's ``rows`` (``benchmark.schema``): a model on a test dataset.
+
+    Attributes:
+        table: the table id (``tab:seg``, ``edit:move``...).
+        model: the row's model name, as printed.
+        dataset: the test preset.
+        source: ``"measured"``, ``"baseline"`` or ``"paper"``.
+        metrics: metric name -> value, None where it could not be computed.
+        null_reasons: metric name -> why it is None (every None metric has one).
+        variant: the model variant (None for baselines).
+        n_scenes: scenes scored (None: not recorded, as in the paper's rows).
+        extra: the row's other report fields, unchanged (``run_key``, ``train_dataset``,
+            ``test_fingerprint``, ``nan_counts``, ``eval_wall_s``, ``note``, ``details``,
+            ``failed``, ...).
+    """
+
+    table: str
+    model: str
+    dataset: str
+    source: str
+    metrics: Mapping[str, Any]
+    null_reasons: Mapping[str, str] = field(default_factory=dict)
+    variant: str | None = None
+    n_scenes: int | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def id(self) -> str:
+        """:func:`row_id` of the row."""
+        return row_id(self.table, self.model, self.dataset, self.source)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The row as the report's JSON holds it."""
+        d: dict[str, Any] = {
+            "id": self.id,
+            "table": self.table,
+            "model": self.model,
+            "dataset": self.dataset,
+            "variant": self.variant,
+            "source": self.source,
+            "metrics": dict(self.metrics),
+            "null_reasons": dict(self.null_reasons),
+        }
+        if self.n_scenes is not None:
+            d["n_scenes"] = self.n_scenes
+        return {**d, **self.extra}
+
+
 def row_metrics(spec: MeasuredRow) -> tuple[str, ...]:
     """The metrics of a measured row: the declared ones, plus the scene-shuffle control
     (:data:`CONTROL_KEYS`) when the row has ARI or FG-ARI."""
@@ -67,24 +120,13 @@ def row_metrics(spec: MeasuredRow) -> tuple[str, ...]:
     return tuple(spec.metrics)
 
 
-def measured_row(
-    spec: MeasuredRow, rec: ModelRecord, test: DatasetInfo, res: EvalResult
-) -> dict[str, Any]:
+def measured_row(spec: MeasuredRow, rec: ModelRecord, test: DatasetInfo, res: EvalResult) -> Row:
     """The report row of ``spec``: model ``rec`` scored on ``test`` (``res``), with the
     metrics of :func:`row_metrics` and a null reason for each missing one."""
     names = row_metrics(spec)
     metrics = {m: res.metrics.get(m) for m in names}
     reasons = {m: res.null_reasons.get(m, "not_computed") for m, v in metrics.items() if v is None}
-    row = {
-        "id": row_id(spec.table, spec.model, spec.dataset, "measured"),
-        "table": spec.table,
-        "model": spec.model,
-        "dataset": spec.dataset,
-        "variant": spec.job.variant,
-        "source": "measured",
-        "metrics": metrics,
-        "null_reasons": reasons,
-        "n_scenes": res.n_scenes,
+    extra: dict[str, Any] = {
         "nan_counts": {m: res.nan_counts.get(m, 0) for m in names if m in res.nan_counts},
         "run_key": rec.key,
         "train_dataset": rec.train_dataset.name,
@@ -93,38 +135,44 @@ def measured_row(
         "eval_wall_s": round(res.wall_s, 3),
     }
     if spec.note:
-        row["note"] = spec.note
+        extra["note"] = spec.note
     if res.details:
-        row["details"] = res.details
-    return row
+        extra["details"] = res.details
+    return Row(
+        table=spec.table,
+        model=spec.model,
+        dataset=spec.dataset,
+        source="measured",
+        metrics=metrics,
+        null_reasons=reasons,
+        variant=spec.job.variant,
+        n_scenes=res.n_scenes,
+        extra=extra,
+    )
 
 
-def unavailable_row(
-    spec: MeasuredRow, why: str, kind: str = "dataset_unavailable"
-) -> dict[str, Any]:
-    """A measured row with every metric null: ``kind`` (``dataset_unavailable`` or
-    ``failed``) and ``why`` are the reason."""
+def unavailable_row(spec: MeasuredRow, why: str, kind: str = "dataset_unavailable") -> Row:
+    """A measured row with every metric null: ``kind`` (``dataset_unavailable``,
+    ``not_trained`` or ``failed``) and ``why`` are the reason."""
     reason = f"{kind}: " + why[:300]
     names = row_metrics(spec)
     extra = {"failed": why[:1000]} if kind == "failed" else {}
-    return {
-        **extra,
-        "id": row_id(spec.table, spec.model, spec.dataset, "measured"),
-        "table": spec.table,
-        "model": spec.model,
-        "dataset": spec.dataset,
-        "variant": spec.job.variant,
-        "source": "measured",
-        "metrics": {m: None for m in names},
-        "null_reasons": {m: reason for m in names},
-        "n_scenes": 0,
-        "train_dataset": f"{spec.job.train_preset}/train",
-    }
+    return Row(
+        table=spec.table,
+        model=spec.model,
+        dataset=spec.dataset,
+        source="measured",
+        metrics=dict.fromkeys(names),
+        null_reasons=dict.fromkeys(names, reason),
+        variant=spec.job.variant,
+        n_scenes=0,
+        extra={**extra, "train_dataset": f"{spec.job.train_preset}/train"},
+    )
 
 
 def chance_baseline_rows(
     table: str, dataset: str, metrics: tuple[str, ...], res: dict[str, EvalResult]
-) -> list[dict[str, Any]]:
+) -> list[Row]:
     """The chance rows (:data:`benchmark.evaluate.BASELINES`) of ``table`` on ``dataset``:
     each baseline's results ``res`` on the table's ``metrics`` it can score (image metrics
     for the flat colour, segmentation metrics for the others; never the control)."""
@@ -140,20 +188,17 @@ def chance_baseline_rows(
             continue
         r = res[name]
         m = {k: r.metrics.get(k) for k in keep}
+        reasons = {k: r.null_reasons.get(k, "not_computed") for k, v in m.items() if v is None}
         rows.append(
-            {
-                "id": row_id(table, label, dataset, "baseline"),
-                "table": table,
-                "model": label,
-                "dataset": dataset,
-                "variant": None,
-                "source": "baseline",
-                "metrics": m,
-                "null_reasons": {
-                    k: r.null_reasons.get(k, "not_computed") for k, v in m.items() if v is None
-                },
-                "n_scenes": r.n_scenes,
-            }
+            Row(
+                table=table,
+                model=label,
+                dataset=dataset,
+                source="baseline",
+                metrics=m,
+                null_reasons=reasons,
+                n_scenes=r.n_scenes,
+            )
         )
     return rows
 

@@ -164,7 +164,7 @@ def run_table_protocol(
         except DatasetUnavailable as err:
             log(f"row {spec.table} / {spec.model} / {spec.dataset}: dataset unavailable: {err}")
             unavailable.append(f"{spec.table} / {spec.model} / {spec.dataset}: {err}")
-            rows.append(unavailable_row(spec, str(err)))
+            rows.append(unavailable_row(spec, str(err)).to_dict())
             continue
         state["tests"][spec.dataset] = test
         stored = store.get(rid)
@@ -191,16 +191,16 @@ def run_table_protocol(
                     "without --no-train to train it"
                 )
                 not_trained.append(f"{spec.table} / {spec.model} / {spec.dataset}")
-                rows.append(unavailable_row(spec, why, kind="not_trained"))
+                rows.append(unavailable_row(spec, why, kind="not_trained").to_dict())
                 continue
             res = ctx.evaluation(rec, test)
         except Exception as err:  # noqa: BLE001 - one failing row must not lose the others
             why = f"{type(err).__name__}: {err}".splitlines()[0]
             log(f"row {spec.table} / {spec.model} / {spec.dataset}: FAILED: {why}")
             failed.append(f"{spec.table} / {spec.model} / {spec.dataset}: {why}")
-            rows.append(unavailable_row(spec, why, kind="failed"))
+            rows.append(unavailable_row(spec, why, kind="failed").to_dict())
             continue
-        row = measured_row(spec, rec, test, res)
+        row = measured_row(spec, rec, test, res).to_dict()
         store.put(row)
         rows.append(row)
         state["records"][(spec.job, spec.dataset)] = rec
@@ -218,9 +218,10 @@ def run_table_protocol(
         metrics = tuple(
             dict.fromkeys(m for s in measured if (s.table, s.dataset) == k for m in s.metrics)
         )
-        rows.extend(
-            chance_baseline_rows(spec.table, spec.dataset, metrics, ctx.baselines(test, k_slots))
+        chance = chance_baseline_rows(
+            spec.table, spec.dataset, metrics, ctx.baselines(test, k_slots)
         )
+        rows.extend(r.to_dict() for r in chance)
     if failed:
         report["status"] = "partial"
         ctx.notes.insert(

@@ -115,3 +115,20 @@ def test_room_diverse_starts_from_the_clevr567_model(split, tmp_path):
         if theirs is not None and theirs.shape == v.shape:
             assert torch.equal(theirs, v), k
     assert res["loaded"] == info["loaded"]
+
+
+def test_report_row_to_dict_is_the_report_json():
+    """benchmark.rows.Row: the typed row gives exactly the dict a report holds."""
+    from benchmark.rows import Row, row_id
+
+    r = Row(table="tab:seg", model="sVORF", dataset="clevr567", source="measured",
+            metrics={"ari": 50.0, "fg_ari": None}, null_reasons={"fg_ari": "no_scene_scored"},
+            variant="full", n_scenes=3, extra={"run_key": "abc"})  # fmt: skip
+    assert r.id == row_id("tab:seg", "sVORF", "clevr567", "measured")
+    assert r.to_dict() == {
+        "id": "tab:seg|sVORF|clevr567|measured", "table": "tab:seg", "model": "sVORF",
+        "dataset": "clevr567", "variant": "full", "source": "measured",
+        "metrics": {"ari": 50.0, "fg_ari": None}, "null_reasons": {"fg_ari": "no_scene_scored"},
+        "n_scenes": 3, "run_key": "abc",
+    }  # fmt: skip
+    assert "n_scenes" not in Row("t", "m", "d", "paper", {}).to_dict()

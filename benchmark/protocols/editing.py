@@ -52,7 +52,7 @@ from benchmark.jobs import ModelJob
 from benchmark.log import log
 from benchmark.metrics import ari_score, fg_ari_score, lpips_or_null, psnr, ssim
 from benchmark.report import stable_hash, write_json
-from benchmark.rows import row_id
+from benchmark.rows import Row
 from scenefmt import MANIP_SPLIT
 
 __all__ = ["EDITING_MODELS", "EDIT_METRICS", "EDIT_TABLES", "editing_datasets", "run_editing"]
@@ -146,11 +146,10 @@ def _aggregate(values: dict[str, list[float]], lpips_reason: str | None):
 
 
 def _row(table, model, dataset, source, variant, metrics, reasons, n, extra) -> dict[str, Any]:
-    return {
-        "id": row_id(table, model, dataset, source), "table": table, "model": model,
-        "dataset": dataset, "variant": variant, "source": source, "metrics": metrics,
-        "null_reasons": reasons, "n_scenes": n, **extra,
-    }  # fmt: skip
+    return Row(
+        table=table, model=model, dataset=dataset, source=source, metrics=metrics,
+        null_reasons=reasons, variant=variant, n_scenes=int(n), extra=extra,
+    ).to_dict()  # fmt: skip
 
 
 def _null_rows(name, variant, dataset, reason, extra) -> list[dict[str, Any]]:
