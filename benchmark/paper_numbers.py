@@ -23,6 +23,8 @@ from __future__ import annotations
 import copy
 from typing import Any
 
+from benchmark.report_row import Row
+
 __all__ = [
     "NA_REASON",
     "NOT_REPORTED_REASON",
@@ -226,9 +228,9 @@ def paper_rows(table: str) -> list[dict[str, Any]]:
         table: A key of :data:`PAPER_TABLES` (a LaTeX label such as ``"tab:seg"``).
 
     Returns:
-        Row dicts ready for a report: ``id, table, model, dataset, variant,
-        source="paper", metrics, null_reasons`` (and ``note`` where the paper's
-        number is quoted from another table).
+        Row dicts ready for a report (:meth:`benchmark.report_row.Row.to_dict`): ``id,
+        table, model, dataset, variant, source="paper", metrics, null_reasons`` (and
+        ``note`` where the paper's number is quoted from another table).
 
     Raises:
         KeyError: If the table id is unknown (the message lists the known ids).
@@ -238,10 +240,18 @@ def paper_rows(table: str) -> list[dict[str, Any]]:
     out = []
     for row in PAPER_TABLES[table]["rows"]:
         r = copy.deepcopy(row)
-        r["table"] = table
-        r["source"] = "paper"
-        r["id"] = f"{table}|{r['model']}|{r['dataset']}|paper"
-        out.append(r)
+        core = ("model", "dataset", "variant", "metrics", "null_reasons")
+        row_value = Row(
+            table=table,
+            model=r["model"],
+            dataset=r["dataset"],
+            source="paper",
+            metrics=r["metrics"],
+            null_reasons=r["null_reasons"],
+            variant=r["variant"],
+            extra={k: v for k, v in r.items() if k not in core},
+        )
+        out.append(row_value.to_dict())
     return out
 
 

@@ -4,8 +4,8 @@ and the plain-words verdict of whether a measured model decomposes the scenes.
 Where this sits: a table protocol declares its rows as :class:`MeasuredRow`;
 :func:`benchmark.runner.run_table_protocol` scores them (through
 :class:`benchmark.context.Context`) and turns each result into a report :class:`Row` here
-(its :meth:`Row.to_dict` is the JSON the report holds). Every row's id is :func:`row_id`,
-which the other protocols use too.
+(``benchmark.report_row``, re-exported here: its :meth:`Row.to_dict` is the JSON the
+report holds). Every row's id is :func:`row_id`, which the other protocols use too.
 
 Measured rows with ARI / FG-ARI also carry the scene-shuffle control
 (:data:`benchmark.evaluate.CONTROL_KEYS`), and :func:`verdicts_for` says a row
@@ -14,14 +14,14 @@ decomposes only if its FG-ARI beats both the chance baselines and that control.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from benchmark.context import ModelRecord
 from benchmark.datasets import DatasetInfo
 from benchmark.evaluate import BASELINES, CONTROL_KEYS, EvalResult
 from benchmark.jobs import ModelJob
+from benchmark.report_row import Row, row_id
 from benchmark.scales import ScaleSettings
 
 __all__ = [
@@ -55,61 +55,6 @@ class MeasuredRow:
     job: ModelJob
     metrics: tuple[str, ...]
     note: str = ""
-
-
-def row_id(table: str, model: str, dataset: str, source: str) -> str:
-    """Stable id of a report row."""
-    return f"{table}|{model}|{dataset}|{source}"
-
-
-@dataclass(frozen=True)
-class Row:
-    """One row of a report's ``rows`` (``benchmark.schema``): a model on a test dataset.
-
-    Attributes:
-        table: the table id (``tab:seg``, ``edit:move``...).
-        model: the row's model name, as printed.
-        dataset: the test preset.
-        source: ``"measured"``, ``"baseline"`` or ``"paper"``.
-        metrics: metric name -> value, None where it could not be computed.
-        null_reasons: metric name -> why it is None (every None metric has one).
-        variant: the model variant (None for baselines).
-        n_scenes: scenes scored (None: not recorded, as in the paper's rows).
-        extra: the row's other report fields, unchanged (``run_key``, ``train_dataset``,
-            ``test_fingerprint``, ``nan_counts``, ``eval_wall_s``, ``note``, ``details``,
-            ``failed``, ...).
-    """
-
-    table: str
-    model: str
-    dataset: str
-    source: str
-    metrics: Mapping[str, Any]
-    null_reasons: Mapping[str, str] = field(default_factory=dict)
-    variant: str | None = None
-    n_scenes: int | None = None
-    extra: Mapping[str, Any] = field(default_factory=dict)
-
-    @property
-    def id(self) -> str:
-        """:func:`row_id` of the row."""
-        return row_id(self.table, self.model, self.dataset, self.source)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The row as the report's JSON holds it."""
-        d: dict[str, Any] = {
-            "id": self.id,
-            "table": self.table,
-            "model": self.model,
-            "dataset": self.dataset,
-            "variant": self.variant,
-            "source": self.source,
-            "metrics": dict(self.metrics),
-            "null_reasons": dict(self.null_reasons),
-        }
-        if self.n_scenes is not None:
-            d["n_scenes"] = self.n_scenes
-        return {**d, **self.extra}
 
 
 def row_metrics(spec: MeasuredRow) -> tuple[str, ...]:

@@ -93,7 +93,7 @@ from benchmark.protocols.speed.training import (
     training_row,
 )
 from benchmark.report import RowStore
-from benchmark.rows import row_id
+from benchmark.report_row import row_id
 
 __all__ = [
     "BASELINE_CODE",

@@ -17,7 +17,7 @@ from benchmark.jobs import ModelJob
 from benchmark.protocols.speed.options import SpeedOptions
 from benchmark.protocols.speed.training import available_mb, load_avg, run_worker, worker_args
 from benchmark.report import RowStore
-from benchmark.rows import row_id
+from benchmark.report_row import Row
 
 __all__ = [
     "PAPER_RATIOS",
@@ -91,19 +91,10 @@ def compare_row(
     else:
         why_tensor = why
     first = ok[0] if ok else {}
-    return {
-        "id": row_id("speed_vs_uorf", model, "clevr567", "measured"),
-        "table": "speed_vs_uorf",
-        "model": model,
-        "dataset": "clevr567",
-        "variant": "full" if style == "svorf" else "uorf_style",
-        "source": "measured",
-        "metrics": metrics,
-        "null_reasons": {
-            k: (why_tensor if k == "tensor_peak_mb" else why)
-            for k, v in metrics.items()
-            if v is None
-        },
+    reasons = {
+        k: (why_tensor if k == "tensor_peak_mb" else why) for k, v in metrics.items() if v is None
+    }
+    extra = {
         "n_cases": len(steps),
         "repeats": len(ok),
         "repeats_failed": len(runs) - len(ok),
@@ -127,6 +118,17 @@ def compare_row(
             f"(alternating with the other configuration); memory = median of the repeats' peaks"
         ),
     }
+    row = Row(
+        table="speed_vs_uorf",
+        model=model,
+        dataset="clevr567",
+        source="measured",
+        metrics=metrics,
+        null_reasons=reasons,
+        variant="full" if style == "svorf" else "uorf_style",
+        extra=extra,
+    )
+    return row.to_dict()
 
 
 def ratio_row(
@@ -166,15 +168,7 @@ def ratio_row(
         for k, t in TARGET_RATIOS.items()
     }
     n = min(int(svorf["n_cases"]), int(uorf["n_cases"]))
-    return {
-        "id": row_id("speed_vs_uorf", label, "clevr567", "measured"),
-        "table": "speed_vs_uorf",
-        "model": label,
-        "dataset": "clevr567",
-        "variant": "ratio",
-        "source": "measured",
-        "metrics": metrics,
-        "null_reasons": reasons,
+    extra = {
         "n_cases": n if any(v is not None for v in metrics.values()) else 0,
         "batch_scenes": svorf.get("batch_scenes"),
         "paper": dict(PAPER_RATIOS),
@@ -192,6 +186,17 @@ def ratio_row(
             "(tensor_memory_ratio); on CUDA the two are the same measure"
         ),
     }
+    row = Row(
+        table="speed_vs_uorf",
+        model=label,
+        dataset="clevr567",
+        source="measured",
+        metrics=metrics,
+        null_reasons=reasons,
+        variant="ratio",
+        extra=extra,
+    )
+    return row.to_dict()
 
 
 def compare_batches(ctx: Context, options: SpeedOptions) -> list[int]:

@@ -19,7 +19,7 @@ from typing import Any
 
 from benchmark.context import Context
 from benchmark.protocols.speed.options import SpeedOptions
-from benchmark.rows import row_id
+from benchmark.report_row import Row, row_id
 
 __all__ = [
     "BASELINE_LABELS",
@@ -37,16 +37,21 @@ GENERATOR_BASELINE_TARGET = 1.5
 
 
 def _gen_row(model: str, metrics: dict[str, float | None], reason: str, **extra: Any):
-    return {
-        "id": row_id("speed_generator", model, "clevr567", "measured"),
-        "table": "speed_generator",
-        "model": model,
-        "dataset": "clevr567",
-        "source": "measured",
-        "metrics": metrics,
-        "null_reasons": {k: reason for k, v in metrics.items() if v is None},
-        **extra,
-    }
+    """A ``speed_generator`` row's dict; ``variant`` only where given (it measures no model)."""
+    has_variant = "variant" in extra
+    variant = extra.pop("variant", None)
+    row = Row(
+        table="speed_generator",
+        model=model,
+        dataset="clevr567",
+        source="measured",
+        metrics=metrics,
+        null_reasons={k: reason for k, v in metrics.items() if v is None},
+        variant=variant,
+        extra=extra,
+        has_variant=has_variant,
+    )
+    return row.to_dict()
 
 
 def _bare_cycles(root: Path, threads: int) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from typing import Any
 from benchmark.context import Context
 from benchmark.jobs import ModelJob
 from benchmark.report import stable_hash
-from benchmark.rows import row_id
+from benchmark.report_row import Row
 
 __all__ = [
     "PAPER_EPOCH_SCENES",
@@ -151,15 +151,7 @@ def training_row(table: str, model: str, m: dict[str, Any], epoch: bool) -> dict
             **metrics,
         }
     reasons = {k: "not_measured" for k, v in metrics.items() if v is None}
-    return {
-        "id": row_id(table, model, "clevr567", "measured"),
-        "table": table,
-        "model": model,
-        "dataset": "clevr567",
-        "variant": "full",
-        "source": "measured",
-        "metrics": metrics,
-        "null_reasons": reasons,
+    extra = {
         "n_cases": int(m["timed_steps"]),
         "batch_scenes": m["batch_scenes"],
         "rays_per_scene": m["rays_per_scene"],
@@ -174,6 +166,17 @@ def training_row(table: str, model: str, m: dict[str, Any], epoch: bool) -> dict
         "model_config": m["model_config"],
         "train_config": m["train_config"],
     }
+    row = Row(
+        table=table,
+        model=model,
+        dataset="clevr567",
+        source="measured",
+        metrics=metrics,
+        null_reasons=reasons,
+        variant="full",
+        extra=extra,
+    )
+    return row.to_dict()
 
 
 def inference_rows(m: dict[str, Any], scale: str) -> list[dict[str, Any]]:
@@ -201,21 +204,21 @@ def inference_rows(m: dict[str, Any], scale: str) -> list[dict[str, Any]]:
         ),
     ):
         metrics = {"images_per_s": ips, "render_s_per_view": spv}
-        rows.append(
-            {
-                "id": row_id("speed_inference", model, "clevr567", "measured"),
-                "table": "speed_inference",
-                "model": model,
-                "dataset": "clevr567",
-                "variant": "full",
-                "source": "measured",
-                "metrics": metrics,
-                "null_reasons": {k: "not_measured" for k, v in metrics.items() if v is None},
+        row = Row(
+            table="speed_inference",
+            model=model,
+            dataset="clevr567",
+            source="measured",
+            metrics=metrics,
+            null_reasons={k: "not_measured" for k, v in metrics.items() if v is None},
+            variant="full",
+            extra={
                 "n_cases": n if ips is not None else 0,
                 "device": m["device"],
                 "note": f"{what}; {n} test scene(s) timed after one untimed render; the "
                 "model is the few-step speed run (render time does not depend on training "
                 "with the evaluation knobs off)",
-            }
+            },
         )
+        rows.append(row.to_dict())
     return rows

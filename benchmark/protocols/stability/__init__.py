@@ -37,6 +37,7 @@ from benchmark.protocols.stability.reference import (
     reference_render,
     reference_weights,
 )
+from benchmark.report_row import Row
 
 __all__ = [
     "CASES",
@@ -260,17 +261,18 @@ def run_stability(ctx: Context) -> Path:
     t0 = time.perf_counter()
     for i, (name, build, dtype, autocast) in enumerate(CASES):
         r = run_case(name, build, dtype, autocast, ctx.seeds["eval"] + i, ctx.device)
-        rows.append(
-            {
-                "id": f"stability|{name}|{ctx.device}|measured",
-                "table": "stability",
-                "model": name,
-                "dataset": "synthetic rays",
-                "variant": None,
-                "source": "measured",
-                **r,
-            }
+        metrics, reasons = r.pop("metrics"), r.pop("null_reasons")
+        row = Row(
+            table="stability",
+            model=name,
+            dataset="synthetic rays",
+            source="measured",
+            metrics=metrics,
+            null_reasons=reasons,
+            extra=r,
+            fixed_id=f"stability|{name}|{ctx.device}|measured",
         )
+        rows.append(row.to_dict())
     rows += sc.compose_rows(ctx.seeds["eval"] + 100)
     rows += sc.loss_rows(ctx.seeds["eval"] + 200)
     rows += sc.metric_rows()

@@ -41,6 +41,7 @@ from benchmark.protocols.stability.reference import (
     reference_render,
     reference_weights,
 )
+from benchmark.report_row import Row
 
 __all__ = [
     "COMPOSE_CASES",
@@ -84,18 +85,17 @@ def _rows_of(table: str, name: str, metrics: dict[str, float], passed: bool, **e
     reason = extra.pop("null_reason", "non_finite_error (NaN/Inf)")
     fin = {k: _fin(v) if isinstance(v, float) else v for k, v in metrics.items()}
     extra.setdefault("n_cases", 1)
-    return {
-        "id": f"{table}|{name}|cpu|measured",
-        "table": table,
-        "model": name,
-        "dataset": "synthetic inputs",
-        "variant": None,
-        "source": "measured",
-        "metrics": fin,
-        "null_reasons": {k: reason for k, v in fin.items() if v is None},
-        "pass": bool(passed),
-        **extra,
-    }
+    row = Row(
+        table=table,
+        model=name,
+        dataset="synthetic inputs",
+        source="measured",
+        metrics=fin,
+        null_reasons={k: reason for k, v in fin.items() if v is None},
+        extra={"pass": bool(passed), **extra},
+        fixed_id=f"{table}|{name}|cpu|measured",
+    )
+    return row.to_dict()
 
 
 # ----------------------------------------------------------------- composition

@@ -16,7 +16,7 @@ from typing import Any
 from benchmark.context import Context
 from benchmark.protocols.tradeoff.common import TradeoffSettings
 from benchmark.protocols.tradeoff.pareto import curve_summary, timing_noise
-from benchmark.rows import row_id
+from benchmark.report_row import Row
 
 __all__ = ["GENERATOR_CANDIDATES", "generator_curve", "measure_generator"]
 
@@ -109,17 +109,16 @@ def measure_generator(
         reasons = {
             k: "non_finite (identical images, or no time)" for k, v in metrics.items() if v is None
         }
-        rows.append(
-            {
-                "id": row_id(table, label, dataset, "measured"),
-                "table": table,
-                "model": label,
-                "dataset": dataset,
-                "variant": "generator",
-                "source": "measured",
-                "metrics": metrics,
-                "null_reasons": reasons,
-                "n_scenes": n,
+        row = Row(
+            table=table,
+            model=label,
+            dataset=dataset,
+            source="measured",
+            metrics=metrics,
+            null_reasons=reasons,
+            variant="generator",
+            n_scenes=n,
+            extra={
                 "curve": "generator",
                 "knob": _generator_knob(kw),
                 "setting": label,
@@ -129,8 +128,9 @@ def measure_generator(
                 "render_settings": r["settings"],
                 "masks_identical": r["masks_identical"],
                 "depth_identical": r["depth_identical"],
-            }
+            },
         )
+        rows.append(row.to_dict())
     info["masks_and_depth_identical"] = all(
         r["masks_identical"] and r["depth_identical"] for r in rows
     )

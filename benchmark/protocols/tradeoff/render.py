@@ -31,7 +31,7 @@ from benchmark.protocols.tradeoff.common import (
     log_tradeoff,
 )
 from benchmark.protocols.tradeoff.pareto import curve_summary, timing_noise
-from benchmark.rows import row_id
+from benchmark.report_row import Row
 
 __all__ = [
     "EARLY_STOPS",
@@ -275,16 +275,7 @@ def measure_render(
                 metrics[k] = None
                 reasons[k] = "non_finite (NaN/Inf measured)"
         cfg = shipped.replace(**p.overrides)
-        row = {
-            "id": row_id(table, p.label, scenes.name, "measured"),
-            "table": table,
-            "model": p.label,
-            "dataset": scenes.name,
-            "variant": ws.name,
-            "source": "measured",
-            "metrics": metrics,
-            "null_reasons": reasons,
-            "n_scenes": len(scenes.scenes),
+        extra: dict[str, Any] = {
             "curve": "render",
             "knob": p.knob,
             "setting": p.setting,
@@ -298,13 +289,24 @@ def measure_render(
             "ground_truth": scenes.ground_truth,
         }
         if ws.run_key:
-            row["run_key"] = ws.run_key
+            extra["run_key"] = ws.run_key
         if p.reference:
-            row["note"] = (
+            extra["note"] = (
                 "the shipped default: the model's config as trained, evaluation knobs off; "
                 "the differences of every point are against this render"
             )
-        rows.append(row)
+        row = Row(
+            table=table,
+            model=p.label,
+            dataset=scenes.name,
+            source="measured",
+            metrics=metrics,
+            null_reasons=reasons,
+            variant=ws.name,
+            n_scenes=len(scenes.scenes),
+            extra=extra,
+        )
+        rows.append(row.to_dict())
     return rows, scenes, shipped
 
 

@@ -31,7 +31,7 @@ from benchmark.protocols.tradeoff.common import (
     log_tradeoff,
 )
 from benchmark.protocols.tradeoff.pareto import curve_summary, timing_noise
-from benchmark.rows import row_id
+from benchmark.report_row import Row
 
 __all__ = [
     "ALL_KNOBS",
@@ -358,15 +358,7 @@ def step_row(
     reasons = {k: "non_finite (NaN/Inf measured)" for k, v in metrics.items() if v is None}
     within = all(metrics[k] is not None and metrics[k] <= t for k, t in tol.items())
     cfg = p.weights.base.replace(**p.overrides)
-    row = {
-        "id": row_id(p.weights.table, p.label, _DATASET, "measured"),
-        "table": p.weights.table,
-        "model": p.label,
-        "dataset": _DATASET,
-        "variant": p.weights.name,
-        "source": "measured",
-        "metrics": metrics,
-        "null_reasons": reasons,
+    extra: dict[str, Any] = {
         "n_cases": settings.repeats,
         "curve": "step",
         "knob": p.knob,
@@ -384,12 +376,24 @@ def step_row(
         "step_times_s": [round(t, 6) for t in p.times],
     }
     if p.weights.run_key:
-        row["run_key"] = p.weights.run_key
+        extra["run_key"] = p.weights.run_key
     if p.reference:
-        row["note"] = "the knob-free reference of this table: speed-up 1 and error 0 by definition"
+        extra["note"] = (
+            "the knob-free reference of this table: speed-up 1 and error 0 by definition"
+        )
     elif p.exact:
-        row["note"] = "equal to the baseline by construction: error must be 0"
-    return row
+        extra["note"] = "equal to the baseline by construction: error must be 0"
+    row = Row(
+        table=p.weights.table,
+        model=p.label,
+        dataset=_DATASET,
+        source="measured",
+        metrics=metrics,
+        null_reasons=reasons,
+        variant=p.weights.name,
+        extra=extra,
+    )
+    return row.to_dict()
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
