@@ -178,10 +178,10 @@ def _own_scenes_complete(root: Path, manifest: dict[str, Any]) -> bool:
     return n_own > 0 and all(is_scene_complete(layout, s) for s in range(n_own))
 
 
-def source_of(manifest: dict[str, Any]) -> str:
+def source_of(manifest: Manifest) -> str:
     """The data source (:data:`DATA_SOURCES`) that made a split, from its manifest's
     ``generator`` field."""
-    made_by = str(manifest.get("generator", ""))
+    made_by = str(manifest.generator)
     return "synthetic" if made_by.startswith("svorf.synthetic") else "generator"
 
 
@@ -354,9 +354,9 @@ def ensure_dataset(
     ok, nominal = state.usable, state.nominal
     generated = False
     if ok:
-        manifest = read_json(root / "manifest.json")
-        found = str(manifest.get("generator", ""))
-        actual = source_of(manifest)
+        found_manifest = Manifest.from_json(read_json(root / "manifest.json"))
+        found = str(found_manifest.generator)
+        actual = source_of(found_manifest)
         if actual != source:
             raise ValueError(
                 f"{root} was made by {found!r} ({actual}) but --data-source is {source!r}; "

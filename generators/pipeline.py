@@ -293,20 +293,44 @@ def _check_writable(out: Path) -> None:
         raise ValueError(f"--out: {p} is not writable; pass a writable folder with --out")
 
 
-def _check_existing_manifest(path: Path, new: dict) -> None:
+def _identity(m: scenefmt.Manifest) -> dict[str, object]:
+    """The :data:`IDENTITY_KEYS` of a manifest as read back from disk (None: absent)."""
+    d = json.loads(json.dumps(m.to_json()))  # tuples -> lists
+    return {k: d.get(k) for k in IDENTITY_KEYS}
+
+
+def _read_manifest(path: Path) -> scenefmt.Manifest | None:
+    """The manifest at ``path``; None if there is none or it is unreadable JSON.
+
+    Raises:
+        ValueError: JSON that is not a manifest (``scenefmt.Manifest.from_json``'s message).
+    """
     if not path.is_file():
-        return
+        return None
     try:
-        old = scenefmt.read_json(path)
+        raw = scenefmt.read_json(path)
     except (OSError, ValueError):
-        return  # unreadable manifest: rewritten
-    new = json.loads(json.dumps(new))  # tuples -> lists, as read back from disk
-    diff = [k for k in IDENTITY_KEYS if old.get(k) != new.get(k)]
+        return None
+    return scenefmt.Manifest.from_json(raw)
+
+
+def _check_existing_manifest(path: Path, new: scenefmt.Manifest) -> None:
+    try:
+        found = _read_manifest(path)
+    except ValueError as e:  # not written by a generator: maybe another dataset
+        raise ValueError(
+            f"--out: {path.parent} holds a manifest.json that is not a dataset manifest ({e}); "
+            "pass another --out or delete that folder"
+        ) from e
+    if found is None:
+        return  # no manifest, or unreadable JSON: rewritten
+    old, now = _identity(found), _identity(new)
+    diff = [k for k in IDENTITY_KEYS if old[k] != now[k]]
     if diff:
-        shown = ", ".join(f"{k} {old.get(k)!r} vs {new.get(k)!r}" for k in diff
+        shown = ", ".join(f"{k} {old[k]!r} vs {now[k]!r}" for k in diff
                           if k not in ("render", "preset_config", "manip"))  # fmt: skip
         if "manip" in diff:  # the donors are drawn from the split's scene count
-            n_diff = f"n_scenes {old.get('n_scenes')!r} vs {new.get('n_scenes')!r}"
+            n_diff = f"n_scenes {found.n_scenes!r} vs {new.n_scenes!r}"
             shown = ", ".join(x for x in (shown, n_diff) if x)
         raise ValueError(
             f"--out: {path.parent} holds another dataset (different {', '.join(diff)}"
@@ -339,23 +363,23 @@ def _remove_stale_temp_files(layout: scenefmt.SplitLayout, indices: set[int]) ->
 def _usable_source(cfg: GenerateConfig, render: RenderSettings) -> scenefmt.SplitLayout | None:
     """The colour split a derived preset may convert: same scenes, same render settings."""
     src = cfg.source_dir()
-    if src is None or not (src / "manifest.json").is_file():
-        return None
     try:
-        m = scenefmt.read_json(src / "manifest.json")
-    except (OSError, ValueError):
+        m = None if src is None else _read_manifest(src / "manifest.json")
+    except ValueError:
+        return None  # not a manifest: rendered instead
+    if m is None:
         return None
     sp = scene_preset(cfg.preset_obj())
     if cfg.camera_radius is not None:
         sp = sp.with_camera_radius(cfg.camera_radius)
     ok = (
-        m.get("preset") == sp.name
-        and m.get("split") == cfg.split_name()
-        and m.get("seed") == cfg.seed
-        and m.get("resolution") == cfg.resolution
-        and m.get("n_views") == sp.camera.n_views
-        and m.get("render") == render.to_json()
-        and m.get("preset_config") == json.loads(json.dumps(sp.to_json()))
+        m.preset == sp.name
+        and m.split == cfg.split_name()
+        and m.seed == cfg.seed
+        and m.resolution == cfg.resolution
+        and m.n_views == sp.camera.n_views
+        and m.extra.get("render") == render.to_json()
+        and m.extra.get("preset_config") == json.loads(json.dumps(sp.to_json()))
     )
     return scenefmt.SplitLayout(src, n_views=sp.camera.n_views) if ok else None
 
@@ -392,13 +416,13 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
 
         layout: scenefmt.SplitLayout = scenefmt.ManipLayout(out, n_views=preset.camera.n_views)
 
-        def make_manifest(status: str) -> dict:
-            return manip_manifest(preset, n, cfg.resolution, cfg.seed, render, status).to_json()
+        def make_manifest(status: str) -> scenefmt.Manifest:
+            return manip_manifest(preset, n, cfg.resolution, cfg.seed, render, status)
     else:
         layout = scenefmt.SplitLayout(out, n_views=preset.camera.n_views)
 
-        def make_manifest(status: str) -> dict:
-            return manifest(preset, split, n, cfg.resolution, cfg.seed, render, status).to_json()
+        def make_manifest(status: str) -> scenefmt.Manifest:
+            return manifest(preset, split, n, cfg.resolution, cfg.seed, render, status)
 
     new_manifest = make_manifest("in_progress")
     _check_existing_manifest(layout.manifest, new_manifest)
@@ -426,7 +450,7 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
             )
 
     out.mkdir(parents=True, exist_ok=True)
-    scenefmt.atomic_write_json(layout.manifest, new_manifest)
+    scenefmt.atomic_write_json(layout.manifest, new_manifest.to_json())
     _remove_stale_temp_files(layout, set(indices))
 
     bar = None
@@ -500,7 +524,7 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
 
     complete = all(scenefmt.is_scene_complete(layout, i) for i in range(n))
     if complete:
-        scenefmt.atomic_write_json(layout.manifest, make_manifest("complete"))
+        scenefmt.atomic_write_json(layout.manifest, make_manifest("complete").to_json())
     return GenerateSummary(
         out=out,
         preset=preset.name,

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenefmt import SplitLayout, read_depth_exr, read_instances, read_json, read_rgb
+from scenefmt import Manifest, SplitLayout, read_depth_exr, read_instances, read_json, read_rgb
 
 #: Instance colours (id 0 = black background).
 _PALETTE = np.array(
@@ -49,8 +49,8 @@ def colour_depth(depth: np.ndarray, near: float = DEPTH_NEAR, far: float = DEPTH
 def contact_sheet(root: str | Path, n_scenes: int | None = None, gap: int = 2) -> np.ndarray:
     """One row per scene, per view three tiles (RGB, ids, depth). uint8 [H', W', 3]."""
     root = Path(root)
-    mf = read_json(root / "manifest.json")
-    layout = SplitLayout(root, n_views=int(mf["n_views"]))
+    mf = Manifest.from_json(read_json(root / "manifest.json"))
+    layout = SplitLayout(root, n_views=mf.n_views)
     scenes = layout.scene_indices()[: n_scenes if n_scenes is not None else None]
     if not scenes:
         raise ValueError(f"{root}: no scenes to preview")

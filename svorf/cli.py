@@ -55,6 +55,7 @@ from typing import TYPE_CHECKING
 from scenefmt.cli_util import RUNTIME, USAGE, OneLineParser, error_line, fail
 
 if TYPE_CHECKING:
+    from scenefmt import Manifest
     from svorf.config import ModelConfig
     from svorf.distributed import DistContext
     from svorf.train import TrainConfig
@@ -175,9 +176,14 @@ class _UsageError(Exception):
     """A bad command-line input; printed as one line, exit status 2."""
 
 
-def _read_manifest(data: str, *, required: bool = True) -> dict:
-    """The manifest of split folder ``data`` (``{}`` if it has none and not ``required``)."""
-    from scenefmt import read_json
+def _read_manifest(data: str, *, required: bool = True) -> Manifest | None:
+    """The manifest of split folder ``data`` (None if it has none and not ``required``,
+    or if it is not a JSON object: nothing recorded to check; the dataset loader rejects it).
+
+    Any other manifest that is not a :class:`scenefmt.Manifest` fails with the message the
+    dataset loader (``svorf.data``) gives for it, before any work.
+    """
+    from scenefmt import Manifest, read_json
 
     root = Path(data)
     if not root.is_dir():
@@ -185,7 +191,7 @@ def _read_manifest(data: str, *, required: bool = True) -> dict:
     manifest = root / "manifest.json"
     if not manifest.is_file():
         if not required:  # a uORF-layout folder: no metadata to check
-            return {}
+            return None
         raise _UsageError(
             f"--data {data}: no manifest.json - not a generated split folder "
             f"(run `generate verify {data}`)"
@@ -194,7 +200,17 @@ def _read_manifest(data: str, *, required: bool = True) -> dict:
         meta = read_json(manifest)
     except (OSError, ValueError) as e:
         raise _UsageError(f"{manifest}: unreadable JSON ({e}); run `generate verify {data}`") from e
-    return meta if isinstance(meta, dict) else {}
+    if not isinstance(meta, dict):
+        return None
+    try:
+        return Manifest.from_json(meta)
+    except ValueError as e:
+        raise _UsageError(f"{manifest}: {e}; run `generate verify {root}`") from e
+
+
+def _manifest_preset(meta: Manifest | None) -> str | None:
+    """The data preset a manifest records (None: no manifest, or none recorded)."""
+    return (meta.preset or None) if meta is not None else None
 
 
 def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
@@ -202,15 +218,15 @@ def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
     from svorf.train import PRESETS
 
     meta = _read_manifest(data)
-    found = meta.get("preset")
+    found = _manifest_preset(meta)
     wanted = PRESETS[preset].data_presets
     if found not in wanted:
         raise _UsageError(
             f"--preset {preset} trains on {'/'.join(wanted)} data, but {data} holds "
             f"preset {found!r} (pass --preset {_preset_for(found)})"
         )
-    res = meta.get("resolution")
-    if isinstance(res, (list, tuple)) and len(res) == 2 and min(int(r) for r in res) < image_size:
+    res = meta.resolution if meta is not None else None
+    if isinstance(res, tuple) and min(int(r) for r in res) < image_size:
         raise _UsageError(
             f"--scale {scale} trains at {image_size}x{image_size} but {data} holds "
             f"{res[0]}x{res[1]} images; pass --image-size {min(int(r) for r in res)} or "
@@ -332,11 +348,13 @@ def _check_render_preset(run: str, trained: object, data: str, found: object, al
     )
 
 
-def _render_dir(run: str, data: str, meta: dict, scene: int) -> Path:
+def _render_dir(run: str, data: str, meta: Manifest | None, scene: int) -> Path:
     """``RUN/render/{preset}-{split}/scNNNN``: one folder per dataset split and scene."""
     root = Path(data).resolve()
-    preset = meta.get("preset") if isinstance(meta.get("preset"), str) else root.parent.name
-    split = meta.get("split") if isinstance(meta.get("split"), str) else root.name
+    preset = _manifest_preset(meta)
+    split = (meta.split or None) if meta is not None else None
+    preset = preset if isinstance(preset, str) else root.parent.name
+    split = split if isinstance(split, str) else root.name
     name = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{preset}-{split}").strip("._") or "data"
     return Path(run) / "render" / name / f"sc{scene:04d}"
 
@@ -358,7 +376,7 @@ def _cmd_render(a: argparse.Namespace) -> int:
     device = resolve_device(a.device)
     model, info = load_run(a.run, device=device)
     note = _check_render_preset(
-        a.run, info.dataset.get("preset"), a.data, meta.get("preset"), a.allow_preset_mismatch
+        a.run, info.dataset.get("preset"), a.data, _manifest_preset(meta), a.allow_preset_mismatch
     )
     out = Path(a.out) if a.out else _render_dir(a.run, a.data, meta, a.scene)
     if out.exists() and not out.is_dir():

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from scenefmt import MANIP_SPLIT, atomic_write_json, read_json, write_rgb
+from scenefmt import MANIP_SPLIT, DatasetError, Manifest, atomic_write_json, read_json, write_rgb
 
 __all__ = ["add_edit_parser", "cmd_edit"]
 
@@ -74,12 +74,30 @@ def _check_args(a: argparse.Namespace) -> None:
         raise ValueError("--swap-background must name another scene than --scene")
 
 
-def _out_dir(a: argparse.Namespace, meta: dict) -> Path:
+def _read_manifest(data: str) -> Manifest | None:
+    """The manifest of split folder ``data``, None for a folder without one (uORF layout).
+
+    A manifest that is not a :class:`scenefmt.Manifest` fails with the message the dataset
+    loader (``svorf.data``) gives for it.
+    """
+    path = Path(data) / "manifest.json"
+    if not path.is_file():
+        return None
+    raw = read_json(path)
+    try:
+        return Manifest.from_json(raw)
+    except ValueError as e:
+        raise DatasetError(f"{path}: {e}; run `generate verify {Path(data)}`") from e
+
+
+def _out_dir(a: argparse.Namespace, meta: Manifest | None) -> Path:
     if a.out:
         out = Path(a.out)
     else:
         root = Path(a.data).resolve()
-        preset, split = meta.get("preset", root.parent.name), meta.get("split", root.name)
+        preset = (meta.preset or None) if meta is not None else None
+        split = (meta.split or None) if meta is not None else None
+        preset, split = preset or root.parent.name, split or root.name
         name = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{preset}-{split}").strip("._") or "data"
         out = Path(a.run) / "edit" / name / f"sc{a.scene:04d}"
     if out.exists() and not out.is_dir():
@@ -102,8 +120,7 @@ def cmd_edit(a: argparse.Namespace) -> int:
     from svorf.viz import colorize_labels, to_uint8
 
     _check_args(a)
-    mpath = Path(a.data) / "manifest.json"
-    meta = read_json(mpath) if mpath.is_file() else {}
+    meta = _read_manifest(a.data)
     device = resolve_device(a.device)
     model, info = load_run(a.run, device=device)
     hw = info.dataset.get("image_hw") or info.model.image_size
@@ -111,7 +128,7 @@ def cmd_edit(a: argparse.Namespace) -> int:
     if not 0 <= a.input_view < ds.n_views:
         raise ValueError(f"--input-view must be in [0, {ds.n_views}), got {a.input_view}")
     truth = None
-    if meta.get("split") == MANIP_SPLIT:
+    if meta is not None and meta.split == MANIP_SPLIT:
         truth = read_manip_truth(a.data, a.scene, ds.image_hw, ds.n_views)
     same_move = (
         truth is not None

@@ -11,7 +11,6 @@ default render (on small analytic sphere scenes).
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
 from dataclasses import dataclass, field
@@ -32,6 +31,7 @@ from benchmark.protocols.tradeoff.common import (
 )
 from benchmark.protocols.tradeoff.pareto import curve_summary, timing_noise
 from benchmark.report_row import Row
+from scenefmt import Manifest, read_json
 
 __all__ = [
     "EARLY_STOPS",
@@ -136,7 +136,7 @@ def _render_scenes(
         except ValueError as err:  # another resolution
             complete, why = False, str(err)
         if complete:
-            source = source_of(json.loads((root / "manifest.json").read_text()))
+            source = source_of(Manifest.from_json(read_json(root / "manifest.json")))
             info = ensure_dataset(
                 ctx.data,
                 ctx.settings,
@@ -176,7 +176,12 @@ def _usable_as_found(root: Path, ctx: Context) -> bool:
 
     if not (root / "manifest.json").is_file():
         return False
-    source = source_of(json.loads((root / "manifest.json").read_text()))
+    raw = read_json(root / "manifest.json")
+    try:
+        manifest = Manifest.from_json(raw)
+    except ValueError:
+        return False  # not a manifest: split_state finds the split unusable
+    source = source_of(manifest)
     state = split_state(
         ctx.data, ctx.settings, "clevr567", "test", source=source, seed=ctx.seeds["data"]
     )
