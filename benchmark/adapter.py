@@ -264,8 +264,9 @@ def train(
             comes first. None = steps only.
 
     Returns:
-        svorf's run summary (steps, train_wall_s, final_loss, wall_s, s_per_step,
-        peak_rss_mb, params, device...), JSON-able (non-finite floats become None).
+        svorf's run summary (``TrainSummary.to_dict()``: steps, train_wall_s, final_loss,
+        wall_s, s_per_step, peak_rss_mb, params, device...), JSON-able (non-finite floats
+        become None).
     """
     st = _svorf_train()
     out = st.train(
@@ -278,16 +279,10 @@ def train(
         max_wall_s=max_wall_s,
         init_from=init_from,
     )
-    return _jsonable_summary(out)
+    return _jsonable_summary(out.to_dict())
 
 
-def _jsonable_summary(out: Any) -> dict[str, Any]:
-    if out is None:
-        return {}
-    if dataclasses.is_dataclass(out):
-        out = dataclasses.asdict(out)
-    if not isinstance(out, dict):
-        return {}
+def _jsonable_summary(out: dict[str, Any]) -> dict[str, Any]:
     keep = {}
     for k, v in out.items():
         if isinstance(v, (bool, int, str)) or v is None:

@@ -327,7 +327,7 @@ def _train_ranked(
         max_wall_s=None if a.minutes is None else a.minutes * 60.0,
     )
     if main:
-        print(json.dumps(summary, indent=2))
+        print(json.dumps(summary.to_dict(), indent=2))
     return 0
 
 

@@ -16,7 +16,7 @@ A run folder holds::
     config.json     the same configs, for people
     log.jsonl       one line per logged step: step, wall_s, lr, loss, parts, steps_per_s
     eval.jsonl      one line per held-out evaluation: step, wall_s, metrics
-    summary.json    the dict :func:`train` returns
+    summary.json    what :func:`train` returns (``TrainSummary.to_dict()``)
 
 :func:`train` runs these steps: :func:`_setup` (device, data, ray samplers, model,
 optimizer), :func:`_start` (:func:`_resume` from the checkpoint or start afresh,
@@ -116,6 +116,7 @@ __all__ = [
     "RunInfo",
     "ScenePrediction",
     "TrainConfig",
+    "TrainSummary",
     "TrainingDiverged",
     "apply_recipe",
     "atomic_torch_save",
@@ -154,6 +155,51 @@ class TrainingDiverged(RuntimeError):
 
     def __reduce__(self) -> tuple[Any, ...]:  # picklable across processes (Ray, torchrun)
         return (type(self), (str(self), self.step))
+
+
+@dataclass(frozen=True)
+class TrainSummary:
+    """What :func:`train` returns; :meth:`to_dict` is ``summary.json``.
+
+    Attributes:
+        steps: optimizer steps the run has finished (the checkpoint's step).
+        start_step: the step this call started from (0, or the resumed checkpoint's).
+        final_loss: the last step's loss (NaN before any step).
+        wall_s: seconds of this call.
+        train_wall_s: training seconds of all calls (evaluation and checkpointing excluded).
+        s_per_step: training seconds per step of this call (NaN: no step run).
+        peak_rss_mb: peak resident memory of the process in MiB.
+        params: the model's parameter count.
+        device: the torch device trained on.
+        bf16_autocast_active: what ``bf16_autocast`` resolved to on this device.
+        checkpoint / log: paths of ``checkpoint.pt`` and ``log.jsonl``.
+        dataset_fingerprint: the training split's fingerprint.
+        init_from: what started the run's weights (:func:`init_weights_from`), or None.
+        world_size: ranks under torchrun, None in a single process (not in the JSON).
+    """
+
+    steps: int
+    start_step: int
+    final_loss: float
+    wall_s: float
+    train_wall_s: float
+    s_per_step: float
+    peak_rss_mb: float
+    params: int
+    device: str
+    bf16_autocast_active: bool
+    checkpoint: str
+    log: str
+    dataset_fingerprint: str
+    init_from: dict[str, Any] | None = None
+    world_size: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The summary as ``summary.json`` holds it."""
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "world_size"}
+        if self.world_size is not None:
+            d["world_size"] = self.world_size
+        return d
 
 
 # --------------------------------------------------------------------------- run folder
@@ -200,7 +246,7 @@ def train(
     progress: bool = True,
     max_wall_s: float | None = None,
     init_from: str | os.PathLike | None = None,
-) -> dict[str, Any]:
+) -> TrainSummary:
     """Train sVORF on a split folder and write a run folder.
 
     Args:
@@ -227,10 +273,9 @@ def train(
             in the checkpoint, ``config.json`` and the summary (``init_from``).
 
     Returns:
-        Run summary: ``steps``, ``start_step``, ``final_loss``, ``wall_s`` (this call),
-        ``train_wall_s`` (all calls), ``s_per_step``, ``peak_rss_mb``, ``params``,
-        ``device``, ``bf16_autocast_active``, ``checkpoint``, ``log``,
-        ``dataset_fingerprint``.
+        The run's :class:`TrainSummary` (``steps``, ``start_step``, ``final_loss``,
+        ``wall_s`` of this call, ``train_wall_s`` of all calls, ``s_per_step``, ...), also
+        written to ``summary.json``.
 
     Under ``torchrun`` (an initialised process group of W > 1 ranks) every rank calls
     this with the same arguments: each trains on ``batch_scenes / W`` scenes of every
@@ -673,33 +718,32 @@ def _save(run: _Run, step: int, wall: float) -> None:
     )
 
 
-def _finish(run: _Run, budget: _Budget) -> dict[str, Any]:
+def _finish(run: _Run, budget: _Budget) -> TrainSummary:
     """The run summary (written to ``summary.json`` by the main process)."""
     elapsed = time.perf_counter() - budget.t0
     end = run.saved if run.saved is not None else run.start
     steps_run = max(end - run.start, 0)
     paused = budget.paused
-    summary = {
-        "steps": end,
-        "start_step": run.start,
-        "final_loss": run.last_loss,
-        "wall_s": round(elapsed, 3),
-        "train_wall_s": round(run.wall_offset + elapsed - paused, 3),
-        "s_per_step": round((elapsed - paused) / steps_run, 5) if steps_run else math.nan,
-        "peak_rss_mb": round(_peak_rss_mb(), 1),
-        "params": run.model.count_parameters(),
-        "device": str(run.device),
+    summary = TrainSummary(
+        steps=end,
+        start_step=run.start,
+        final_loss=run.last_loss,
+        wall_s=round(elapsed, 3),
+        train_wall_s=round(run.wall_offset + elapsed - paused, 3),
+        s_per_step=round((elapsed - paused) / steps_run, 5) if steps_run else math.nan,
+        peak_rss_mb=round(_peak_rss_mb(), 1),
+        params=run.model.count_parameters(),
+        device=str(run.device),
         # What bf16_autocast resolved to on this device ("auto": native bf16 only).
-        "bf16_autocast_active": bf16_autocast_on(run.model_cfg.bf16_autocast, run.device),
-        "checkpoint": str(run.ckpt_path),
-        "log": str(run.log_path),
-        "dataset_fingerprint": run.dataset.fingerprint,
-        "init_from": run.init_info,
-    }
-    if run.dctx is not None:
-        summary["world_size"] = run.dctx.world_size
+        bf16_autocast_active=bf16_autocast_on(run.model_cfg.bf16_autocast, run.device),
+        checkpoint=str(run.ckpt_path),
+        log=str(run.log_path),
+        dataset_fingerprint=run.dataset.fingerprint,
+        init_from=run.init_info,
+        world_size=run.dctx.world_size if run.dctx is not None else None,
+    )
     if run.main:
-        atomic_write_json(run.out / "summary.json", summary)
+        atomic_write_json(run.out / "summary.json", summary.to_dict())
     return summary
 
 

@@ -134,11 +134,11 @@ def test_max_wall_s_stops_with_a_checkpoint_and_resumes(split, tmp_path):
     mcfg = model_config("smoke", num_slots=4)
     tcfg = train_config("smoke", steps=1000, ckpt_every=500)
     s = train(split, tmp_path / "r", mcfg, tcfg, progress=False, max_wall_s=0.0)
-    assert s["steps"] == 1
+    assert s.steps == 1
     _, info = load_run(tmp_path / "r")
     assert info.step == 1
     s2 = train(split, tmp_path / "r", mcfg, tcfg.replace(steps=3), resume=True, progress=False)
-    assert s2["start_step"] == 1 and s2["steps"] == 3
+    assert s2.start_step == 1 and s2.steps == 3
 
 
 def test_ari_matches_known_values():

@@ -78,8 +78,8 @@ def test_every_cpu_scale_model_trains_one_step(preset, variant, split, tmp_path)
         summary = train(split, tmp_path / "run", mcfg, tcfg, progress=False)
     finally:
         torch.set_num_threads(n)
-    assert summary["steps"] == 1
-    assert torch.isfinite(torch.tensor(summary["final_loss"]))
+    assert summary.steps == 1
+    assert torch.isfinite(torch.tensor(summary.final_loss))
 
 
 def test_room_diverse_starts_from_the_clevr567_model(split, tmp_path):
@@ -102,7 +102,7 @@ def test_room_diverse_starts_from_the_clevr567_model(split, tmp_path):
         )  # fmt: skip
     finally:
         torch.set_num_threads(n)
-    info = summary["init_from"]
+    info = summary.init_from
     assert info["step"] == 2 and info["loaded"] > 0 and info["kept"] > 0
     assert all("slot" in k or "pos" in k or "query" in k for k in info["kept_names"]), info
     model = adapter.load_model(tmp_path / "clevr")

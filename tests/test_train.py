@@ -83,9 +83,12 @@ def test_smoke_training_lowers_loss_and_writes_a_run(split, tmp_path):
     run = tmp_path / "run"
     cfg = tcfg(steps=30, ckpt_every=15, eval_every=10, eval_scenes=1)
     summary = train(split, run, MCFG, cfg, eval_data=split, eval_fn=eval_fn, progress=False)
-    assert summary["steps"] == 30 and summary["params"] == SVORF(MCFG).count_parameters()
-    assert summary["peak_rss_mb"] > 0 and summary["s_per_step"] > 0
-    assert summary["bf16_autocast_active"] is False  # the smoke config keeps float32
+    assert summary.steps == 30 and summary.params == SVORF(MCFG).count_parameters()
+    assert summary.peak_rss_mb > 0 and summary.s_per_step > 0
+    assert summary.bf16_autocast_active is False  # the smoke config keeps float32
+    on_disk = json.loads((run / "summary.json").read_text())
+    assert on_disk == json.loads(json.dumps(summary.to_dict()))
+    assert "world_size" not in on_disk  # a single process
     log = _log(run)
     assert [r["step"] for r in log] == list(range(1, 31))
     assert {"loss", "lr", "wall_s", "parts", "steps_per_s"} <= set(log[0])

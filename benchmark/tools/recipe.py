@@ -385,7 +385,7 @@ def train_eval(
     final["failures"] = failure_breakdown(model, test)
     atomic_write_json(out / "final_eval.json", final)
     save_segmentation_grid(model, test, out / "grid.png", grid_scenes)
-    return {"summary": summary, "final": final, "grid": str(out / "grid.png")}
+    return {"summary": summary.to_dict(), "final": final, "grid": str(out / "grid.png")}
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
