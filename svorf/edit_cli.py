@@ -95,9 +95,8 @@ def _out_dir(a: argparse.Namespace, meta: Manifest | None) -> Path:
         out = Path(a.out)
     else:
         root = Path(a.data).resolve()
-        preset = (meta.preset or None) if meta is not None else None
-        split = (meta.split or None) if meta is not None else None
-        preset, split = preset or root.parent.name, split or root.name
+        preset = (meta.preset if meta is not None else "") or root.parent.name
+        split = (meta.split if meta is not None else "") or root.name
         name = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{preset}-{split}").strip("._") or "data"
         out = Path(a.run) / "edit" / name / f"sc{a.scene:04d}"
     if out.exists() and not out.is_dir():
