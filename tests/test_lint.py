@@ -2,8 +2,7 @@
 ``[tool.ruff]`` configuration of pyproject.toml): lint runs with the test suite, so CI
 fails on a new finding or an unformatted file.
 
-Skipped only where ruff is not installed (it is in the ``test`` extra: ``pip install -e
-.[test]``).
+Ruff is in the ``test`` extra (``pip install -e .[test]``); without it the tests fail.
 """
 
 from __future__ import annotations
@@ -13,8 +12,6 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
-
-import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 #: What is linted: every package of the project, and the tests.
@@ -31,8 +28,9 @@ def _ruff() -> list[str] | None:
 
 def test_ruff_check_passes():
     ruff = _ruff()
-    if ruff is None:
-        pytest.skip("ruff is not installed (pip install -e .[test])")
+    assert ruff is not None, (
+        "ruff is not installed: pip install -e '.[test]' (it is in the test extra)"
+    )
     proc = subprocess.run(
         [*ruff, "check", "--no-cache", "--output-format", "concise", *LINTED],
         cwd=ROOT,
@@ -46,8 +44,9 @@ def test_ruff_check_passes():
 
 def test_ruff_format_is_clean():
     ruff = _ruff()
-    if ruff is None:
-        pytest.skip("ruff is not installed (pip install -e .[test])")
+    assert ruff is not None, (
+        "ruff is not installed: pip install -e '.[test]' (it is in the test extra)"
+    )
     proc = subprocess.run(
         [*ruff, "format", "--check", "--no-cache", *LINTED],
         cwd=ROOT,
