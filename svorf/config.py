@@ -127,6 +127,14 @@ class ModelConfig:
     clip_to_box: bool = False
     """Clip [near, far] of each ray to the scene box so samples lie only inside the scene
     (denser sampling for the same N). The paper samples [near, far]: off at paper scale."""
+    box_z: tuple[float, float] | None = None
+    """(floor, ceiling): with ``clip_to_box``, the samples of a ray lie in the box
+    [-box_half, box_half]^2 x [floor, ceiling] instead of the cube (world units, world frame).
+    A scene prior like ``fg_zmin``: on a ground plane at z = 0 with objects lower than the
+    ceiling, the cube wastes about half of each ray's samples under the floor and more
+    above the objects; the slab puts them where the objects are (about 3x denser on CLEVR's
+    cameras), and the ray's last, opaque sample lies just under the floor, where the
+    background slot paints it. None: the cube (paper)."""
     coord_frame: CoordFrame = "input_azimuth"
     """Frame of the coordinates the networks see (gamma(x), gamma(d), the composition).
     "input_azimuth": the world frame rotated about the up axis (z) so that the input
@@ -291,6 +299,10 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "enc_blocks", tuple(int(b) for b in self.enc_blocks))
+        if self.box_z is not None:  # JSON gives a list
+            if len(self.box_z) != 2:
+                raise ValueError(f"ModelConfig.box_z must be (floor, ceiling), got {self.box_z}")
+            object.__setattr__(self, "box_z", tuple(float(z) for z in self.box_z))
         _check_choice("composition", self.composition, Composition)
         _check_choice("slot_module", self.slot_module, SlotModule)
         _check_choice("enc_norm", self.enc_norm, EncoderNorm)
@@ -352,6 +364,14 @@ class ModelConfig:
             )
         if self.box_half <= 0 or (self.fg_box is not None and self.fg_box <= 0):
             raise ValueError("ModelConfig.box_half and fg_box must be > 0")
+        if self.box_z is not None:
+            lo, hi = self.box_z
+            if not (self.clip_to_box and -self.box_half <= lo < hi <= self.box_half):
+                raise ValueError(
+                    f"ModelConfig.box_z must be (floor, ceiling) with -box_half <= floor < "
+                    f"ceiling <= box_half and needs clip_to_box=True, got box_z={self.box_z}, "
+                    f"box_half={self.box_half}, clip_to_box={self.clip_to_box}"
+                )
         if self.bg_outside_fg and self.fg_box is None and self.fg_zmin is None:
             raise ValueError("ModelConfig.bg_outside_fg needs fg_box or fg_zmin (the region)")
         if self.bg_floor_slab is not None:
@@ -432,6 +452,8 @@ class ModelConfig:
         when set)."""
         d = dataclasses.asdict(self)
         d["enc_blocks"] = list(self.enc_blocks)
+        if self.box_z is not None:
+            d["box_z"] = list(self.box_z)
         for name in _OMITTED_WHEN_NONE:  # off: not written, so keys of earlier runs stay valid
             if d[name] is None:
                 del d[name]
@@ -465,7 +487,12 @@ class ModelConfig:
 #: Fields read only at evaluation (no effect on training): left out of ``to_dict`` while off.
 #: Fields added after runs were cached: written by ``to_dict`` only when set (not None), so
 #: a run that leaves them off keeps the key it had before they existed.
-_OMITTED_WHEN_NONE = ("eval_early_stop", "eval_fine_min_weight", "bg_pos_freqs_xyz")
+_OMITTED_WHEN_NONE = (
+    "eval_early_stop",
+    "eval_fine_min_weight",
+    "bg_pos_freqs_xyz",
+    "box_z",
+)
 
 
 def _check_choice(name: str, value: object, literal: object) -> None:

@@ -169,11 +169,15 @@ def sample_pdf(
     return samples.clamp(bins[..., :1], bins[..., -1:])
 
 
-def ray_box_intersect(rays_o: Tensor, rays_d: Tensor, half: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Slab test of rays against the cube [-half, half]^3.
+def ray_box_intersect(
+    rays_o: Tensor, rays_d: Tensor, half: float, z_range: tuple[float, float] | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Slab test of rays against the cube [-half, half]^3 (or the box [-half, half]^2 x
+    [z_range[0], z_range[1]] when ``z_range`` is given).
 
     Args:
         rays_o, rays_d: [..., 3] (d need not be unit; components near 0 are guarded).
+        z_range: (low, high) z of the box; None: [-half, half].
     Returns:
         t_enter [...], t_exit [...], hit [...] (bool, t_exit > max(t_enter, 0)).
     """
@@ -182,8 +186,10 @@ def ray_box_intersect(rays_o: Tensor, rays_d: Tensor, half: float) -> tuple[Tens
     d = torch.where(d.abs() < eps, torch.where(d < 0, -eps, eps), d)
     inv = 1.0 / d
     o = rays_o.float()
-    t0 = (-half - o) * inv
-    t1 = (half - o) * inv
+    lo = torch.tensor([-half, -half, -half if z_range is None else z_range[0]], device=o.device)
+    hi = torch.tensor([half, half, half if z_range is None else z_range[1]], device=o.device)
+    t0 = (lo - o) * inv
+    t1 = (hi - o) * inv
     t_enter = torch.minimum(t0, t1).amax(dim=-1)
     t_exit = torch.maximum(t0, t1).amin(dim=-1)
     hit = t_exit > t_enter.clamp_min(0.0)
@@ -191,9 +197,15 @@ def ray_box_intersect(rays_o: Tensor, rays_d: Tensor, half: float) -> tuple[Tens
 
 
 def clip_rays_to_box(
-    rays_o: Tensor, rays_d: Tensor, near: float, far: float, half: float
+    rays_o: Tensor,
+    rays_d: Tensor,
+    near: float,
+    far: float,
+    half: float,
+    z_range: tuple[float, float] | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Per-ray [near, far] clipped to the box [-half, half]^3.
+    """Per-ray [near, far] clipped to the box [-half, half]^3 (its z extent ``z_range`` when
+    given, see :func:`ray_box_intersect`).
 
     Rays that miss the box (or whose clipped interval is empty) keep the full [near, far], so
     every ray still has valid, sorted samples (the background slot then colours them).
@@ -201,7 +213,7 @@ def clip_rays_to_box(
     Returns:
         near_r [...], far_r [...] float32 with near <= near_r < far_r <= far.
     """
-    t_enter, t_exit, hit = ray_box_intersect(rays_o, rays_d, half)
+    t_enter, t_exit, hit = ray_box_intersect(rays_o, rays_d, half, z_range)
     near_r = t_enter.clamp(min=near)
     far_r = t_exit.clamp(max=far)
     ok = hit & (far_r > near_r + 1e-6)

@@ -183,6 +183,40 @@ def test_ray_box_clipping():
     assert hit.tolist() == [True, True, False, True]
 
 
+def test_ray_box_clipping_to_a_z_slab():
+    """box_z: the samples of a CLEVR camera's ray lie between the floor and the ceiling."""
+    e = math.radians(40.0)
+    o = torch.tensor([[12.4 * math.cos(e), 0.0, 12.4 * math.sin(e)], [0.0, 0.0, -9.0]])
+    d = torch.stack([-o[0] / o[0].norm(), torch.tensor([0.0, 0.0, 1.0])])
+    near, far = clip_rays_to_box(o, d, 6.0, 20.0, 4.5, (-0.25, 2.0))
+    # the ray towards the origin enters at z = 2 and leaves at z = -0.25 (slant 1 / sin 40)
+    z_near, z_far = (o[0, 2] + near[0] * d[0, 2]).item(), (o[0, 2] + far[0] * d[0, 2]).item()
+    assert z_near == pytest.approx(2.0, abs=1e-5) and z_far == pytest.approx(-0.25, abs=1e-5)
+    assert far[0].item() - near[0].item() == pytest.approx(2.25 / math.sin(e), rel=1e-5)
+    # the vertical ray from below crosses the slab: [8.75, 11]
+    assert near[1].item() == pytest.approx(8.75) and far[1].item() == pytest.approx(11.0)
+    # without z_range: the cube, as before
+    cube = clip_rays_to_box(o, d, 6.0, 20.0, 4.5)
+    assert cube[1][1].item() == pytest.approx(13.5)
+
+
+def test_box_z_needs_clip_to_box_and_an_ordered_range():
+    from svorf.config import ModelConfig
+
+    assert ModelConfig(clip_to_box=True, box_z=[-0.25, 2.0]).box_z == (-0.25, 2.0)
+    cfg = ModelConfig(clip_to_box=True, box_z=(-0.25, 2.0))
+    assert ModelConfig.from_json(cfg.to_json()) == cfg
+    assert "box_z" not in ModelConfig().to_dict()  # off: earlier config keys unchanged
+    for clip, box_z in [
+        (False, (-0.25, 2.0)),
+        (True, (2.0, -0.25)),
+        (True, (-5.0, 2.0)),
+        (True, (1.0,)),
+    ]:
+        with pytest.raises(ValueError, match="box_z"):
+            ModelConfig(clip_to_box=clip, box_z=box_z)
+
+
 def test_distortion_linear_equals_quadratic():
     g = torch.Generator().manual_seed(0)
     w = torch.rand(4, 7, 24, generator=g, dtype=torch.float64)
