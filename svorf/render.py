@@ -204,19 +204,22 @@ def clip_rays_to_box(
     half: float,
     z_range: tuple[float, float] | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Per-ray [near, far] clipped to the box [-half, half]^3 (its z extent ``z_range`` when
-    given, see :func:`ray_box_intersect`).
+    """Per-ray [near, far] clipped to the box [-half, half]^3, or to the slab
+    [-half, half]^2 x [z_range[0], z_range[1]] when ``z_range`` is given.
 
-    Rays that miss the box (or whose clipped interval is empty) keep the full [near, far], so
-    every ray still has valid, sorted samples (the background slot then colours them).
+    Rays that miss the slab (above the objects towards the horizon) keep the cube's
+    interval; rays that miss the cube (or whose clipped interval is empty) keep the full
+    [near, far], so every ray still has valid, sorted samples (the background slot then
+    colours them).
 
     Returns:
         near_r [...], far_r [...] float32 with near <= near_r < far_r <= far.
     """
-    t_enter, t_exit, hit = ray_box_intersect(rays_o, rays_d, half, z_range)
-    near_r = t_enter.clamp(min=near)
-    far_r = t_exit.clamp(max=far)
-    ok = hit & (far_r > near_r + 1e-6)
-    near_r = torch.where(ok, near_r, torch.full_like(near_r, near))
-    far_r = torch.where(ok, far_r, torch.full_like(far_r, far))
+    near_r = torch.full(rays_o.shape[:-1], float(near), device=rays_o.device)
+    far_r = torch.full(rays_o.shape[:-1], float(far), device=rays_o.device)
+    for zr in (None,) if z_range is None else (None, z_range):  # the cube, then the slab
+        t_enter, t_exit, hit = ray_box_intersect(rays_o, rays_d, half, zr)
+        lo, hi = t_enter.clamp(min=near), t_exit.clamp(max=far)
+        ok = hit & (hi > lo + 1e-6)
+        near_r, far_r = torch.where(ok, lo, near_r), torch.where(ok, hi, far_r)
     return near_r, far_r

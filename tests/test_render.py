@@ -198,6 +198,11 @@ def test_ray_box_clipping_to_a_z_slab():
     # without z_range: the cube, as before
     cube = clip_rays_to_box(o, d, 6.0, 20.0, 4.5)
     assert cube[1][1].item() == pytest.approx(13.5)
+    # a ray towards the horizon passes over the slab: it keeps the cube's interval
+    h = torch.tensor([[-12.0, 0.0, 3.0]]), torch.tensor([[1.0, 0.0, 0.0]])
+    assert clip_rays_to_box(*h, 6.0, 20.0, 4.5, (-0.25, 2.0)) == clip_rays_to_box(
+        *h, 6.0, 20.0, 4.5
+    )
 
 
 def test_box_z_needs_clip_to_box_and_an_ordered_range():
