@@ -135,10 +135,11 @@ def _complete(root: Path, n_scenes: int, resolution: int) -> tuple[bool, str]:
     return True, "complete"
 
 
-def _render_of(manifest: dict[str, Any]) -> tuple[int | None, bool | None, int | None]:
+def _render_of(manifest: Manifest) -> tuple[int | None, bool | None, int | None]:
     """``(render samples, denoise, seed)`` a manifest records (None where it does not)."""
-    render = manifest.get("render") if isinstance(manifest.get("render"), dict) else {}
-    samples, denoise, seed = render.get("samples"), render.get("denoise"), manifest.get("seed")
+    render = manifest.extra.get("render")
+    render = render if isinstance(render, dict) else {}
+    samples, denoise, seed = render.get("samples"), render.get("denoise"), manifest.seed
     return (
         int(samples) if isinstance(samples, (int, float)) else None,
         bool(denoise) if isinstance(denoise, bool) else None,
@@ -171,10 +172,10 @@ def _deviations(nominal: dict[str, Any], actual: dict[str, Any]) -> tuple[str, .
     return tuple(out)
 
 
-def _own_scenes_complete(root: Path, manifest: dict[str, Any]) -> bool:
+def _own_scenes_complete(root: Path, manifest: Manifest) -> bool:
     """All scenes the split's own manifest announces are complete on disk."""
-    n_own = int(manifest.get("n_scenes") or 0)
-    layout = SplitLayout(root, n_views=int(manifest.get("n_views", 4)))
+    n_own = manifest.n_scenes
+    layout = SplitLayout(root, n_views=manifest.n_views)
     return n_own > 0 and all(is_scene_complete(layout, s) for s in range(n_own))
 
 
@@ -236,11 +237,15 @@ def split_state(
     if not ok and source == "generator" and (root / "manifest.json").is_file():
         # An existing split the generator cannot extend (other render settings or seed:
         # it refuses to mix them) is used as found when its own scenes are complete.
-        old = read_json(root / "manifest.json")
-        samples, denoise, old_seed = _render_of(old)
-        same = {"render_samples": samples, "denoise": denoise, "seed": old_seed}
-        if _deviations(nominal, same) and _own_scenes_complete(root, old):
-            ok, why = True, "complete as found"
+        try:
+            old = Manifest.from_json(read_json(root / "manifest.json"))
+        except (OSError, ValueError):
+            old = None  # unreadable: _complete said why
+        if old is not None:
+            samples, denoise, old_seed = _render_of(old)
+            same = {"render_samples": samples, "denoise": denoise, "seed": old_seed}
+            if _deviations(nominal, same) and _own_scenes_complete(root, old):
+                ok, why = True, "complete as found"
     return SplitState(ok, why, nominal)
 
 
@@ -371,10 +376,9 @@ def ensure_dataset(
         ok, why = _complete(root, n, settings.resolution)
         if not ok:
             raise RuntimeError(f"{root}: still incomplete after generation ({why})")
-    manifest = read_json(root / "manifest.json")
-    mf = Manifest.from_json(manifest)
+    mf = Manifest.from_json(read_json(root / "manifest.json"))
     n_views, res = mf.n_views, mf.image_hw[0]
-    samples, denoise, data_seed = _render_of(manifest)
+    samples, denoise, data_seed = _render_of(mf)
     n_found = len(SplitLayout(root, n_views=n_views).scene_indices())  # what svorf.data loads
     actual_settings = {
         "n_scenes": n_found,

@@ -259,9 +259,7 @@ def write_synthetic_split(
             objects=tuple(objects),
             extra={
                 "lights": [{"type": "directional", "direction": _LIGHT_DIR.tolist()}],
-                # [h, w] as these files always had it (an int elsewhere); changing it
-                # would change every synthetic split's fingerprint.
-                "render": {"engine": "svorf.synthetic (analytic ray cast)", "resolution": [h, w]},
+                "render": {"engine": "svorf.synthetic (analytic ray cast)", "resolution": h},
             },
         )
         atomic_write_json(layout.scene_json(scene), record.to_json())
@@ -270,7 +268,7 @@ def write_synthetic_split(
         split=split,
         n_scenes=n_scenes,
         n_views=n_views,
-        resolution=(h, w),  # written as [h, w] (see above); Manifest.image_hw reads it
+        resolution=h,
         seed=seed,
         generator="svorf.synthetic",
         conventions={
