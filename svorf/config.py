@@ -243,6 +243,13 @@ class ModelConfig:
     the input view cannot be pushed down under the floor by the background. Outside the
     footprint (walls, sky) it is unchanged. None = no such prior (paper and the cpu
     recipe; a lever, docs/notes/cpu_recipe.md)."""
+    bg_achromatic: bool = False
+    """The background slot's colour is achromatic: r = g = b = the mean of its three
+    channels. A scene prior for grounds without hue (the CLEVR family's grey floor and
+    sky): the background can still paint the floor's shading and the objects' shadows, but
+    not a coloured object onto the floor behind it, so coloured objects must be explained by
+    foreground slots. Wrong for coloured or textured backgrounds (the Room presets). False =
+    no such prior (paper; a lever, docs/notes/cpu_recipe.md)."""
     bg_pos_freqs_xyz: int | None = None
     """Background bandwidth (cpu recipe lever, hypernetwork only): the background slot's
     field sees only the first ``bg_pos_freqs_xyz`` frequencies of gamma(x) (the generated
@@ -364,6 +371,11 @@ class ModelConfig:
             )
         if self.box_half <= 0 or (self.fg_box is not None and self.fg_box <= 0):
             raise ValueError("ModelConfig.box_half and fg_box must be > 0")
+        if self.bg_achromatic and self.composition == "slot_mixer":
+            raise ValueError(
+                "ModelConfig.bg_achromatic needs per-slot colours; composition='slot_mixer' "
+                "mixes the slots before the colour is computed (set bg_achromatic=False)"
+            )
         if self.box_z is not None:
             lo, hi = self.box_z
             if not (self.clip_to_box and -self.box_half <= lo < hi <= self.box_half):
@@ -457,6 +469,9 @@ class ModelConfig:
         for name in _OMITTED_WHEN_NONE:  # off: not written, so keys of earlier runs stay valid
             if d[name] is None:
                 del d[name]
+        for name in _OMITTED_WHEN_FALSE:
+            if d[name] is False:
+                del d[name]
         return d
 
     @classmethod
@@ -493,6 +508,7 @@ _OMITTED_WHEN_NONE = (
     "bg_pos_freqs_xyz",
     "box_z",
 )
+_OMITTED_WHEN_FALSE = ("bg_achromatic",)
 
 
 def _check_choice(name: str, value: object, literal: object) -> None:

@@ -480,12 +480,14 @@ class SVORF(nn.Module):
                 sigma_k, rgb_k = self._eval_slots(params, gx, gd, keep)
                 if log_g is not None:
                     sigma_k = sigma_k * log_g.exp()
+                rgb_k = self._bg_colour(rgb_k, is_bg)
                 sigma, rgb = compose(sigma_k, rgb_k, m_eval)
             else:
                 keep = None if valid is None else valid.expand(B, P, K)
                 sigma_k, rgb_k = self._eval_slots(params, gx, gd, keep)
                 if log_g is not None:
                     sigma_k = sigma_k * log_g.exp()
+                rgb_k = self._bg_colour(rgb_k, is_bg)
                 sigma, rgb, m = compose_density_weighted(sigma_k, rgb_k, valid)
         return FieldQuery(
             sigma.view(B, R, N),
@@ -493,6 +495,14 @@ class SVORF(nn.Module):
             sigma_k.float().view(B, K, R, N),
             m.float().reshape(B, R, N, K),  # the composer's m is a [B, K, P] transpose
         )
+
+    def _bg_colour(self, rgb_k: Tensor, is_bg: Tensor) -> Tensor:
+        """``ModelConfig.bg_achromatic``: the background slot's colours [B, K, P, 3] made
+        grey (the mean of the three channels); the other slots' unchanged."""
+        if not self.cfg.bg_achromatic:
+            return rgb_k
+        grey = rgb_k.mean(dim=-1, keepdim=True).expand_as(rgb_k)
+        return torch.where(is_bg[:, :, None, None], grey, rgb_k)
 
     def query_context(
         self,

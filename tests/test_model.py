@@ -746,3 +746,22 @@ def test_slot_normalised_attention_maps_share_each_token_among_the_slots():
     model = smoke(num_slots=4, slot_locality=1.0, slot_centre="attention_slots")
     _, extra = model.encode_for_render(make_images(1))
     assert extra["slot_attn"].shape[:2] == (1, 4)
+
+
+@pytest.mark.parametrize("composition", ["slot_guided", "density_weighted"])
+def test_bg_achromatic_greys_the_background_slot_only(composition):
+    """bg_achromatic: rays rendered by the background slot alone are grey (r = g = b);
+    with the foreground slots they are not, and the default config key is unchanged."""
+    assert "bg_achromatic" not in ModelConfig().to_dict()
+    o, d = make_rays(2, 16)
+    only_bg = torch.tensor([[False, False, False, True]] * 2)
+    for grey in (False, True):
+        model = smoke(composition=composition, bg_achromatic=grey)
+        slots = model.encode(make_images(2))
+        bg = model.render_rays(slots, o, d, slot_mask=only_bg).rgb
+        spread = (bg.amax(-1) - bg.amin(-1)).max().item()
+        assert (spread < 1e-5) == grey, spread
+        everything = model.render_rays(slots, o, d).rgb
+        assert (everything.amax(-1) - everything.amin(-1)).max().item() > 1e-4
+    with pytest.raises(ValueError, match="bg_achromatic"):
+        ModelConfig(composition="slot_mixer", bg_achromatic=True)
