@@ -250,6 +250,17 @@ class ModelConfig:
     not a coloured object onto the floor behind it, so coloured objects must be explained by
     foreground slots. Wrong for coloured or textured backgrounds (the Room presets). False =
     no such prior (paper; a lever, docs/notes/cpu_recipe.md)."""
+    bg_chroma_fade: tuple[float, float] | None = None
+    """``bg_achromatic`` switched on gradually over training: the background slot keeps its
+    full colour until the run's progress reaches ``p0``, is grey (as with
+    ``bg_achromatic``) from ``p1`` on, and in between its colour is blended linearly
+    towards grey (``grey + c * (rgb - grey)``, c from 1 down to 0). Progress is the run's
+    fraction as for ``TrainConfig.lr_decay`` (steps, or training wall time of a
+    time-budgeted run). The background first paints everything, objects included, and the
+    foreground slots take the objects over from it; a grey background from step 0 stops
+    that first stage (the foreground slots never start), so the prior comes after it. The
+    current blend factor is a model buffer (``bg_chroma``), saved in checkpoints. None =
+    off (paper; a lever, docs/notes/cpu_recipe.md)."""
     bg_pos_freqs_xyz: int | None = None
     """Background bandwidth (cpu recipe lever, hypernetwork only): the background slot's
     field sees only the first ``bg_pos_freqs_xyz`` frequencies of gamma(x) (the generated
@@ -306,6 +317,14 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "enc_blocks", tuple(int(b) for b in self.enc_blocks))
+        if self.bg_chroma_fade is not None:  # JSON gives a list
+            if len(self.bg_chroma_fade) != 2:
+                raise ValueError(
+                    f"ModelConfig.bg_chroma_fade must be (p0, p1), got {self.bg_chroma_fade}"
+                )
+            object.__setattr__(
+                self, "bg_chroma_fade", tuple(float(p) for p in self.bg_chroma_fade)
+            )
         if self.box_z is not None:  # JSON gives a list
             if len(self.box_z) != 2:
                 raise ValueError(f"ModelConfig.box_z must be (floor, ceiling), got {self.box_z}")
@@ -376,6 +395,20 @@ class ModelConfig:
                 "ModelConfig.bg_achromatic needs per-slot colours; composition='slot_mixer' "
                 "mixes the slots before the colour is computed (set bg_achromatic=False)"
             )
+        if self.bg_chroma_fade is not None:
+            p0, p1 = self.bg_chroma_fade
+            if not 0.0 <= p0 <= p1 <= 1.0 or self.bg_achromatic:
+                raise ValueError(
+                    f"ModelConfig.bg_chroma_fade must be (p0, p1) with 0 <= p0 <= p1 <= 1 "
+                    f"(fractions of the run) and bg_achromatic=False, got "
+                    f"bg_chroma_fade={self.bg_chroma_fade}, bg_achromatic={self.bg_achromatic}"
+                )
+            if self.composition == "slot_mixer":
+                raise ValueError(
+                    "ModelConfig.bg_chroma_fade needs per-slot colours; composition="
+                    "'slot_mixer' mixes the slots before the colour is computed "
+                    "(set bg_chroma_fade=None)"
+                )
         if self.box_z is not None:
             lo, hi = self.box_z
             if not (self.clip_to_box and -self.box_half <= lo < hi <= self.box_half):
@@ -466,6 +499,8 @@ class ModelConfig:
         d["enc_blocks"] = list(self.enc_blocks)
         if self.box_z is not None:
             d["box_z"] = list(self.box_z)
+        if self.bg_chroma_fade is not None:
+            d["bg_chroma_fade"] = list(self.bg_chroma_fade)
         for name in _OMITTED_WHEN_NONE:  # off: not written, so keys of earlier runs stay valid
             if d[name] is None:
                 del d[name]
@@ -507,6 +542,7 @@ _OMITTED_WHEN_NONE = (
     "eval_fine_min_weight",
     "bg_pos_freqs_xyz",
     "box_z",
+    "bg_chroma_fade",
 )
 _OMITTED_WHEN_FALSE = ("bg_achromatic",)
 

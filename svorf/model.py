@@ -201,6 +201,8 @@ class SVORF(nn.Module):
         if cfg.slot_locality is not None and cfg.slot_centre in ("learned", "anchored"):
             self.slot_centre = nn.Linear(cfg.slot_dim, 3)
         self.pair_count: PairCount | None = None  # see count_pairs
+        if cfg.bg_chroma_fade is not None:  # the background's colour share (1 = full colour)
+            self.register_buffer("bg_chroma", torch.ones(()))
 
     # ------------------------------------------------------------------ encoding
     def encode(self, images: Tensor, return_attn: bool = False) -> Tensor | tuple[Tensor, Tensor]:
@@ -498,11 +500,34 @@ class SVORF(nn.Module):
 
     def _bg_colour(self, rgb_k: Tensor, is_bg: Tensor) -> Tensor:
         """``ModelConfig.bg_achromatic``: the background slot's colours [B, K, P, 3] made
-        grey (the mean of the three channels); the other slots' unchanged."""
-        if not self.cfg.bg_achromatic:
+        grey (the mean of the three channels); the other slots' unchanged. With
+        ``bg_chroma_fade`` the background's colour is ``grey + c * (rgb - grey)`` with c the
+        ``bg_chroma`` buffer (see :meth:`set_progress`)."""
+        if self.cfg.bg_achromatic:
+            grey = rgb_k.mean(dim=-1, keepdim=True).expand_as(rgb_k)
+            return torch.where(is_bg[:, :, None, None], grey, rgb_k)
+        if self.cfg.bg_chroma_fade is None:
             return rgb_k
-        grey = rgb_k.mean(dim=-1, keepdim=True).expand_as(rgb_k)
-        return torch.where(is_bg[:, :, None, None], grey, rgb_k)
+        c = self.bg_chroma.to(rgb_k.dtype)
+        grey = rgb_k.mean(dim=-1, keepdim=True)
+        return torch.where(is_bg[:, :, None, None], grey + c * (rgb_k - grey), rgb_k)
+
+    def set_progress(self, progress: float) -> None:
+        """Tell the model how far its training run is (a fraction in [0, 1], as for the
+        learning-rate schedule); sets what depends on it (``bg_chroma_fade``'s ``bg_chroma``
+        buffer). The training loop calls it before every step; a no-op without such
+        fields."""
+        fade = self.cfg.bg_chroma_fade
+        if fade is None:
+            return
+        p0, p1 = fade
+        if progress <= p0:
+            c = 1.0
+        elif progress >= p1:
+            c = 0.0
+        else:
+            c = 1.0 - (progress - p0) / (p1 - p0)
+        self.bg_chroma.fill_(c)
 
     def query_context(
         self,

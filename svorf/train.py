@@ -577,6 +577,7 @@ def _train_step(
     lr = lr_at(cfg, step, progress)
     for group in opt.param_groups:
         group["lr"] = lr
+    getattr(model, "module", model).set_progress(progress)
     smp = run.sampler_warm if step < cfg.nvs_warmup else run.sampler
     batch = smp.sample(smp.sample_scenes(cfg.batch_scenes, run.gen), run.gen)
     if run.dctx is not None:

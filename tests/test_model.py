@@ -765,3 +765,41 @@ def test_bg_achromatic_greys_the_background_slot_only(composition):
         assert (everything.amax(-1) - everything.amin(-1)).max().item() > 1e-4
     with pytest.raises(ValueError, match="bg_achromatic"):
         ModelConfig(composition="slot_mixer", bg_achromatic=True)
+
+
+def test_bg_chroma_fade_blends_the_background_towards_grey_over_training(tmp_path):
+    """bg_chroma_fade=(p0, p1): full colour before p0, grey after p1, a linear blend between;
+    the blend factor is a buffer that a checkpoint carries; the default key is unchanged."""
+    assert "bg_chroma_fade" not in ModelConfig().to_dict()
+    o, d = make_rays(2, 16)
+    only_bg = torch.tensor([[False, False, False, True]] * 2)
+    torch.manual_seed(0)
+    model = smoke(bg_chroma_fade=(0.2, 0.6))
+    assert ModelConfig.from_dict(model.cfg.to_dict()).bg_chroma_fade == (0.2, 0.6)
+    slots = model.encode(make_images(2))
+    plain = smoke()
+    plain.load_state_dict({k: v for k, v in model.state_dict().items() if k != "bg_chroma"})
+
+    def bg_rgb(m):
+        return m.render_rays(slots, o, d, slot_mask=only_bg).rgb
+
+    full = bg_rgb(plain)
+    grey = full.mean(-1, keepdim=True)
+    for progress, c in ((0.0, 1.0), (0.2, 1.0), (0.4, 0.5), (0.6, 0.0), (0.9, 0.0)):
+        model.set_progress(progress)
+        assert float(model.bg_chroma) == pytest.approx(c)
+        torch.testing.assert_close(bg_rgb(model), grey + c * (full - grey), atol=1e-5, rtol=0)
+    model.set_progress(0.9)
+    torch.save(model.state_dict(), tmp_path / "m.pt")
+    again = smoke(bg_chroma_fade=(0.2, 0.6))
+    again.load_state_dict(torch.load(tmp_path / "m.pt"))
+    assert float(again.bg_chroma) == 0.0
+    plain.set_progress(0.9)  # a no-op without the field
+    torch.testing.assert_close(bg_rgb(plain), full)
+    for bad in ((0.6, 0.2), (0.0, 1.5), (0.1,)):
+        with pytest.raises(ValueError, match="bg_chroma_fade"):
+            ModelConfig(bg_chroma_fade=bad)
+    with pytest.raises(ValueError, match="bg_chroma_fade"):
+        ModelConfig(bg_chroma_fade=(0.2, 0.6), bg_achromatic=True)
+    with pytest.raises(ValueError, match="bg_chroma_fade"):
+        ModelConfig(composition="slot_mixer", bg_chroma_fade=(0.2, 0.6))
