@@ -322,9 +322,7 @@ class ModelConfig:
                 raise ValueError(
                     f"ModelConfig.bg_chroma_fade must be (p0, p1), got {self.bg_chroma_fade}"
                 )
-            object.__setattr__(
-                self, "bg_chroma_fade", tuple(float(p) for p in self.bg_chroma_fade)
-            )
+            object.__setattr__(self, "bg_chroma_fade", tuple(float(p) for p in self.bg_chroma_fade))
         if self.box_z is not None:  # JSON gives a list
             if len(self.box_z) != 2:
                 raise ValueError(f"ModelConfig.box_z must be (floor, ceiling), got {self.box_z}")

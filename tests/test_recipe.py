@@ -265,6 +265,33 @@ def test_object_failures_classifies_lost_merged_and_own():
         object_failures(pred[:2], gt, 3)
 
 
+def test_fg_ari_repairs_score_each_error_kind_alone():
+    from sklearn.metrics import adjusted_rand_score
+
+    from benchmark.tools.recipe import fg_ari_repairs
+
+    # slot 3 = background. Object 1: slots 0 and 1 (split); object 2: one pixel in the
+    # background (a rim); objects 3 and 4 share slot 2 (merged); object 5 lost.
+    gt = torch.tensor([[1, 1, 1, 1, 0], [2, 2, 2, 0, 0], [3, 3, 4, 4, 0], [5, 5, 0, 0, 0]])
+    pred = torch.tensor([[0, 0, 0, 1, 3], [1, 1, 3, 3, 3], [2, 2, 2, 2, 3], [3, 3, 3, 3, 3]])
+    r = fg_ari_repairs(pred, gt, bg_slot=3)
+    fg = gt.reshape(-1) != 0
+    g = gt.reshape(-1)[fg].numpy()
+
+    def ari(labels):
+        return adjusted_rand_score(g, torch.tensor(labels).reshape(-1)[fg].numpy())
+
+    assert r["fg_ari"] == pytest.approx(ari(pred.tolist()))
+    leak = [[0, 0, 0, 1, 3], [1, 1, 6, 3, 3], [2, 2, 2, 2, 3], [9, 9, 3, 3, 3]]  # fresh labels
+    split = [[0, 0, 0, 0, 3], [1, 1, 3, 3, 3], [2, 2, 2, 2, 3], [3, 3, 3, 3, 3]]
+    merge = [[0, 0, 0, 1, 3], [1, 1, 3, 3, 3], [2, 2, 7, 7, 3], [3, 3, 3, 3, 3]]
+    assert r["bg_leak_repaired"] == pytest.approx(ari(leak))
+    assert r["split_repaired"] == pytest.approx(ari(split))
+    assert r["merge_repaired"] == pytest.approx(ari(merge))
+    assert min(r["bg_leak_repaired"], r["split_repaired"], r["merge_repaired"]) > r["fg_ari"]
+    assert math.isnan(fg_ari_repairs(pred, torch.zeros_like(gt), 3)["fg_ari"])
+
+
 def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     from benchmark.tools.recipe import main
 
@@ -275,6 +302,9 @@ def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     f = final["failures"]
     assert f["objects"] > 0 and f["n_scenes"] == 2
     assert math.isclose(sum(f[k]["fraction"] for k in ("lost", "merged", "own")), 1.0)
+    assert set(f["fg_ari_repairs"]) == {
+        "fg_ari", "bg_leak_repaired", "split_repaired", "merge_repaired"
+    }  # fmt: skip
     assert main(["diagnose", str(tmp_path / "r"), "--test", str(split), "--threads", "1"]) == 0
     saved = json.loads((tmp_path / "r" / "failures.json").read_text())
     assert saved["objects"] == f["objects"] and saved["step"] == final["step"]
