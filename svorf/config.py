@@ -274,6 +274,14 @@ class ModelConfig:
     """Temperature T of the slot-guided composition: m = softmax_k(logits / T). T < 1
     sharpens the soft masks (more decomposition pressure from the first steps). 1.0 = paper."""
 
+    slot_locality_narrow: tuple[float, float, float] | None = None
+    """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
+    ``slot_locality`` until the run's progress reaches ``p0``, ``r_end`` from ``p1`` on,
+    and linear in between (progress as for ``bg_chroma_fade``). A wide envelope lets the
+    slots find the objects early; a narrow one late keeps a slot one or two units away
+    from taking half of a large object (a split). The current radius is a model buffer
+    (``locality_radius``), saved in checkpoints. None = a fixed radius (a lever,
+    docs/notes/cpu_recipe.md)."""
     slot_locality: float | None = None
     """Slot-centred locality (cpu recipe): if set (a radius r, world units), every foreground
     slot also predicts a centre c_k = e * tanh(Linear(s_k)) (e = ``fg_box`` or ``box_half``;
@@ -323,6 +331,14 @@ class ModelConfig:
                     f"ModelConfig.bg_chroma_fade must be (p0, p1), got {self.bg_chroma_fade}"
                 )
             object.__setattr__(self, "bg_chroma_fade", tuple(float(p) for p in self.bg_chroma_fade))
+        if self.slot_locality_narrow is not None:  # JSON gives a list
+            if len(self.slot_locality_narrow) != 3:
+                raise ValueError(
+                    "ModelConfig.slot_locality_narrow must be (r_end, p0, p1), got "
+                    f"{self.slot_locality_narrow}"
+                )
+            narrow = tuple(float(v) for v in self.slot_locality_narrow)
+            object.__setattr__(self, "slot_locality_narrow", narrow)
         if self.box_z is not None:  # JSON gives a list
             if len(self.box_z) != 2:
                 raise ValueError(f"ModelConfig.box_z must be (floor, ceiling), got {self.box_z}")
@@ -453,6 +469,15 @@ class ModelConfig:
                     "ModelConfig.slot_locality needs per-slot fields; composition='slot_mixer' "
                     "mixes them (use slot_guided or density_weighted)"
                 )
+        if self.slot_locality_narrow is not None:
+            r_end, p0, p1 = self.slot_locality_narrow
+            if self.slot_locality is None or not (r_end > 0 and 0.0 <= p0 <= p1 <= 1.0):
+                raise ValueError(
+                    "ModelConfig.slot_locality_narrow must be (r_end, p0, p1) with r_end > 0 "
+                    "and 0 <= p0 <= p1 <= 1 (fractions of the run), with slot_locality set; "
+                    f"got slot_locality_narrow={self.slot_locality_narrow}, "
+                    f"slot_locality={self.slot_locality}"
+                )
         if self.slot_centre != "learned" and self.slot_locality is None:
             raise ValueError(
                 f"ModelConfig.slot_centre={self.slot_centre!r} places slot_locality centres: set "
@@ -499,6 +524,8 @@ class ModelConfig:
             d["box_z"] = list(self.box_z)
         if self.bg_chroma_fade is not None:
             d["bg_chroma_fade"] = list(self.bg_chroma_fade)
+        if self.slot_locality_narrow is not None:
+            d["slot_locality_narrow"] = list(self.slot_locality_narrow)
         for name in _OMITTED_WHEN_NONE:  # off: not written, so keys of earlier runs stay valid
             if d[name] is None:
                 del d[name]
@@ -541,6 +568,7 @@ _OMITTED_WHEN_NONE = (
     "bg_pos_freqs_xyz",
     "box_z",
     "bg_chroma_fade",
+    "slot_locality_narrow",
 )
 _OMITTED_WHEN_FALSE = ("bg_achromatic",)
 

@@ -131,6 +131,15 @@ def azimuth_frame(cam_to_world: Tensor) -> Tensor:
     return torch.stack(rows, -2)
 
 
+def _ramp(progress: float, p0: float, p1: float) -> float:
+    """0 before ``p0``, 1 from ``p1`` on, linear in between (a schedule over the run)."""
+    if progress <= p0:
+        return 0.0
+    if progress >= p1:
+        return 1.0
+    return (progress - p0) / (p1 - p0)
+
+
 def centre_anchors(k: int, extent: float, height: float) -> Tensor:
     """Fixed anchors [K, 3] of ``slot_centre="anchored"``: the K-1 foreground slots on a
     sunflower (Fibonacci) disk of radius 0.6 ``extent`` at z = ``height`` (slot i at radius
@@ -203,6 +212,8 @@ class SVORF(nn.Module):
         self.pair_count: PairCount | None = None  # see count_pairs
         if cfg.bg_chroma_fade is not None:  # the background's colour share (1 = full colour)
             self.register_buffer("bg_chroma", torch.ones(()))
+        if cfg.slot_locality_narrow is not None:  # the slot-locality radius now
+            self.register_buffer("locality_radius", torch.tensor(float(cfg.slot_locality)))
 
     # ------------------------------------------------------------------ encoding
     def encode(self, images: Tensor, return_attn: bool = False) -> Tensor | tuple[Tensor, Tensor]:
@@ -460,7 +471,8 @@ class SVORF(nn.Module):
         log_g = None  # [B, K, P] log of the slot-locality envelopes (0 for the background)
         if centres is not None:
             d2 = (xn - centres[:, :, None, :]).square().sum(-1)  # [B, K, P]
-            log_g = (-0.5 / cfg.slot_locality**2) * d2.masked_fill(is_bg[:, :, None], 0.0)
+            r = self.locality_radius if cfg.slot_locality_narrow is not None else cfg.slot_locality
+            log_g = (-0.5 / r**2) * d2.masked_fill(is_bg[:, :, None], 0.0)
 
         with self._autocast(slots.device):
             if cfg.composition == "slot_mixer":
@@ -515,19 +527,15 @@ class SVORF(nn.Module):
     def set_progress(self, progress: float) -> None:
         """Tell the model how far its training run is (a fraction in [0, 1], as for the
         learning-rate schedule); sets what depends on it (``bg_chroma_fade``'s ``bg_chroma``
-        buffer). The training loop calls it before every step; a no-op without such
-        fields."""
+        buffer, ``slot_locality_narrow``'s ``locality_radius``). The training loop calls it
+        before every step; a no-op without such fields."""
         fade = self.cfg.bg_chroma_fade
-        if fade is None:
-            return
-        p0, p1 = fade
-        if progress <= p0:
-            c = 1.0
-        elif progress >= p1:
-            c = 0.0
-        else:
-            c = 1.0 - (progress - p0) / (p1 - p0)
-        self.bg_chroma.fill_(c)
+        if fade is not None:
+            self.bg_chroma.fill_(1.0 - _ramp(progress, *fade))
+        narrow = self.cfg.slot_locality_narrow
+        if narrow is not None:
+            r0, (r1, p0, p1) = float(self.cfg.slot_locality), narrow
+            self.locality_radius.fill_(r0 + (r1 - r0) * _ramp(progress, p0, p1))
 
     def query_context(
         self,

@@ -803,3 +803,34 @@ def test_bg_chroma_fade_blends_the_background_towards_grey_over_training(tmp_pat
         ModelConfig(bg_chroma_fade=(0.2, 0.6), bg_achromatic=True)
     with pytest.raises(ValueError, match="bg_chroma_fade"):
         ModelConfig(composition="slot_mixer", bg_chroma_fade=(0.2, 0.6))
+
+
+def test_slot_locality_narrow_shrinks_the_radius_over_training(tmp_path):
+    """slot_locality_narrow=(r_end, p0, p1): the radius is slot_locality before p0, r_end
+    after p1, linear between; a model at radius r renders as one built with slot_locality=r;
+    the radius is a buffer that a checkpoint carries; the default key is unchanged."""
+    assert "slot_locality_narrow" not in ModelConfig().to_dict()
+    o, d = make_rays(2, 16)
+    kw = {"num_slots": 4, "slot_centre": "anchored", "fg_box": 3.0}
+    model = smoke(slot_locality=1.0, slot_locality_narrow=(0.5, 0.2, 0.6), **kw).eval()
+    cfg = ModelConfig.from_dict(model.cfg.to_dict())
+    assert cfg.slot_locality_narrow == (0.5, 0.2, 0.6)
+    weights = {k: v for k, v in model.state_dict().items() if k != "locality_radius"}
+    slots = model.encode(make_images(2))
+    for progress, r in ((0.0, 1.0), (0.2, 1.0), (0.4, 0.75), (0.6, 0.5), (0.9, 0.5)):
+        model.set_progress(progress)
+        assert float(model.locality_radius) == pytest.approx(r)
+        fixed = smoke(slot_locality=r, **kw).eval()
+        fixed.load_state_dict(weights)
+        torch.testing.assert_close(
+            model.render_rays(slots, o, d).rgb, fixed.render_rays(slots, o, d).rgb
+        )
+    torch.save(model.state_dict(), tmp_path / "m.pt")
+    again = smoke(slot_locality=1.0, slot_locality_narrow=(0.5, 0.2, 0.6), **kw)
+    again.load_state_dict(torch.load(tmp_path / "m.pt"))
+    assert float(again.locality_radius) == pytest.approx(0.5)
+    for bad in ((0.5, 0.6, 0.2), (0.0, 0.2, 0.6), (0.5, 0.2)):
+        with pytest.raises(ValueError, match="slot_locality_narrow"):
+            ModelConfig(slot_locality=1.0, slot_locality_narrow=bad)
+    with pytest.raises(ValueError, match="slot_locality_narrow"):
+        ModelConfig(slot_locality_narrow=(0.5, 0.2, 0.6))
