@@ -114,12 +114,12 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
         generators.ray_backend.RayMissingError: ray is not installed.
         RayJobError: a training or evaluation task failed (names the job).
     """
-    from generators.ray_backend import import_ray
+    from generators.ray_backend import import_ray, init_ray
 
     ray = import_ray()
     started = not ray.is_initialized()
     if started:
-        ray.init(address=ctx.address, include_dashboard=False, log_to_driver=False)
+        init_ray(ray, ctx.address)
     try:
         res = ray.cluster_resources()
         cpus = int(res.get("CPU", 1))

@@ -32,7 +32,7 @@ from typing import Any
 from generators.presets import Preset
 from generators.spec import RenderSettings
 
-__all__ = ["RayMissingError", "RayPlan", "import_ray", "plan", "render_scenes"]
+__all__ = ["RayMissingError", "RayPlan", "import_ray", "init_ray", "plan", "render_scenes"]
 
 #: Default Cycles threads per actor when ``--threads`` is not given (ENV.md: one 2-thread
 #: Blender process beat two 1-thread ones on 2 cores).
@@ -53,6 +53,20 @@ def import_ray() -> Any:
             "pip install 'svorf-toolkit[ray]' (or pip install 'ray>=2.9')"
         ) from e
     return ray
+
+
+def init_ray(ray: Any, address: str | None) -> None:
+    """``ray.init`` for the CLIs: join ``address`` (or ``RAY_ADDRESS``), else start a local
+    instance whose workers run at the caller's priority.
+
+    Ray starts its worker processes at niceness 15 (``RAY_worker_niceness``), so beside
+    other CPU work on the machine (a training, a second protocol) they get a small share
+    of the cores and a time-budgeted training makes few steps. Unless the caller set
+    ``RAY_worker_niceness`` itself, a local instance started here uses 0. A cluster
+    started with ``ray start`` keeps its own setting (docs/scaleout.md).
+    """
+    os.environ.setdefault("RAY_worker_niceness", "0")
+    ray.init(address=address, include_dashboard=False, log_to_driver=False)
 
 
 @dataclass(frozen=True)
@@ -184,7 +198,7 @@ def render_scenes(
     ray = import_ray()
     started = False
     if not ray.is_initialized():
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        init_ray(ray, address)
         started = True
     try:
         cpus = int(ray.cluster_resources().get("CPU", 0))

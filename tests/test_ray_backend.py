@@ -3,13 +3,14 @@ same bytes as the local process pool, resumes, recycles actors, and fails in one
 
 from __future__ import annotations
 
+import os
 import sys
 
 import numpy as np
 import pytest
 
 from generators.blender_backend import bpy_available
-from generators.ray_backend import RayMissingError, import_ray, plan
+from generators.ray_backend import RayMissingError, import_ray, init_ray, plan
 
 RES = 32
 KW = {"preset": "clevr567", "resolution": RES, "samples": 2, "progress": False}
@@ -85,3 +86,24 @@ def test_ray_cli_bad_input_is_one_line(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "pip install 'svorf-toolkit[ray]'" in err, err
     assert not (tmp_path / "x").exists()
+
+
+def test_init_ray_starts_workers_at_normal_priority_unless_told(monkeypatch):
+    """A local Ray instance started by the CLIs gets RAY_worker_niceness=0 (Ray's default
+    15 starves its trainings beside other work); a value the user set is kept."""
+    calls = []
+
+    class FakeRay:
+        @staticmethod
+        def init(**kw):
+            calls.append((kw, os.environ.get("RAY_worker_niceness")))
+
+    monkeypatch.delenv("RAY_worker_niceness", raising=False)
+    init_ray(FakeRay, None)
+    assert calls[-1] == (
+        {"address": None, "include_dashboard": False, "log_to_driver": False},
+        "0",
+    )
+    monkeypatch.setenv("RAY_worker_niceness", "10")
+    init_ray(FakeRay, "auto")
+    assert calls[-1][0]["address"] == "auto" and calls[-1][1] == "10"
