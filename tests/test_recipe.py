@@ -305,10 +305,17 @@ def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     assert set(f["fg_ari_repairs"]) == {
         "fg_ari", "bg_leak_repaired", "split_repaired", "merge_repaired"
     }  # fmt: skip
-    assert main(["diagnose", str(tmp_path / "r"), "--test", str(split), "--threads", "1"]) == 0
+    grid = tmp_path / "g" / "grid.png"
+    argv = ["diagnose", str(tmp_path / "r"), "--test", str(split), "--threads", "1"]
+    assert main([*argv, "--grid", str(grid), "--grid-scenes", "2"]) == 0
     saved = json.loads((tmp_path / "r" / "failures.json").read_text())
     assert saved["objects"] == f["objects"] and saved["step"] == final["step"]
-    assert json.loads(capsys.readouterr().out)["objects"] == f["objects"]
+    out = json.loads(capsys.readouterr().out)
+    assert out["objects"] == f["objects"] and out["grid"] == str(grid)
+    from PIL import Image
+
+    with Image.open(grid) as im:  # two scene rows, seven tiles each
+        assert im.size[0] > 3 * im.size[1] and im.size[1] >= 4 * mcfg.image_size
     assert main(["diagnose", str(tmp_path), "--test", str(split)]) == 2
     err = capsys.readouterr().err.strip()
     assert "no checkpoint" in err and len(err.splitlines()) == 1

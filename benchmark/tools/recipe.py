@@ -558,6 +558,10 @@ def main(argv: list[str] | None = None) -> int:
     dg.add_argument("--test", required=True, help="held-out split with instance ids")
     dg.add_argument("--scenes", type=int, default=None, help="default: all test scenes")
     dg.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    dg.add_argument("--grid", default=None, metavar="PNG",
+                    help="also write a grid of held-out segmentations (the first --grid-scenes "
+                    "test scenes; columns as train-eval's grid.png)")  # fmt: skip
+    dg.add_argument("--grid-scenes", type=int, default=6, help="scenes in --grid (default: 6)")
     pl = sub.add_parser("plot", help="loss and held-out FG-ARI of runs over wall time (PNG)")
     pl.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     pl.add_argument("--out", required=True, help="PNG path")
@@ -585,6 +589,8 @@ def main(argv: list[str] | None = None) -> int:
         test = MultiViewDataset(a.test, image_size=model.cfg.image_size, max_scenes=a.scenes)
         res = {"step": info.step, **failure_breakdown(model, test)}
         atomic_write_json(Path(a.run) / "failures.json", res)
+        if a.grid:
+            res["grid"] = str(save_segmentation_grid(model, test, a.grid, a.grid_scenes))
         print(json.dumps(res, indent=2))
         return 0
     levers: dict[str, Any] = {}
