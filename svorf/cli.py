@@ -283,10 +283,13 @@ def _cmd_train(a: argparse.Namespace) -> int:
     if world > 1:  # before any process group exists: every rank fails alike, at once
         distributed.local_batch(tcfg.batch_scenes, world)
     ctx = distributed.init_from_env(tcfg.device)
+    finished = False
     try:
-        return _train_ranked(a, mcfg, tcfg, SVORF(mcfg).count_parameters(), ctx)
+        rc = _train_ranked(a, mcfg, tcfg, SVORF(mcfg).count_parameters(), ctx)
+        finished = True
+        return rc
     finally:
-        distributed.shutdown()
+        distributed.shutdown(synchronise=finished)
 
 
 def _train_ranked(

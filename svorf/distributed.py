@@ -178,11 +178,21 @@ def current() -> DistContext | None:
     return DistContext(dist.get_rank(), world, local, str(dist.get_backend()))
 
 
-def shutdown() -> None:
-    """Destroy the default process group if one exists (end of ``svorf train``)."""
+def shutdown(synchronise: bool = True) -> None:
+    """Destroy the default process group if one exists (end of ``svorf train``).
+
+    Args:
+        synchronise: wait at a barrier first, so that no rank closes its connections
+            while a peer is still working (rank 0 writes the checkpoint and evaluates
+            after the last step). Without it, gloo can abort the rank that leaves first
+            ("terminate called without an active exception"). Pass False after an
+            error: a peer that died would leave the barrier waiting for the timeout.
+    """
     import torch.distributed as dist
 
     if dist.is_available() and dist.is_initialized():
+        if synchronise and dist.get_world_size() > 1:
+            dist.barrier()
         dist.destroy_process_group()
 
 
