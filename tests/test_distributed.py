@@ -68,13 +68,21 @@ def _torchrun(split: Path, out: Path, steps: int, *extra: str) -> subprocess.Com
     return subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300, check=False)
 
 
+def _failure(stdout: str, stderr: str) -> str:
+    """What a failed launch said: where rank 0 got to (stdout) and the first and last lines
+    of stderr (a rank's own message comes first, the launcher's summary last)."""
+    head = stderr[:1500]
+    tail = stderr[-1500:] if len(stderr) > 1500 else ""
+    return f"stdout (tail):\n{stdout[-1500:]}\nstderr (head):\n{head}\n...\n{tail}"
+
+
 @pytest.mark.timeout(400)
 def test_two_cpu_ranks_match_one_process_and_resume(split, tmp_path):
     ddp = tmp_path / "ddp"
     # An interrupted 2-rank run (2 steps) resumed to 3 steps ...
     for steps, extra in ((STEPS - 1, ()), (STEPS, ("--resume",))):
         r = _torchrun(split, ddp, steps, *extra)
-        assert r.returncode == 0, r.stderr[-3000:]
+        assert r.returncode == 0, _failure(r.stdout, r.stderr)
         assert r.stdout.count("svorf train:") == 1, r.stdout  # rank 0 alone prints
     summary = json.loads((ddp / "summary.json").read_text())
     assert summary["world_size"] == 2 and summary["steps"] == STEPS
@@ -133,7 +141,7 @@ def test_two_launchers_as_two_nodes_train_what_one_node_of_two_ranks_trains(spli
         out = tmp_path / name
         if nodes == 1:
             r = _torchrun(split, out, STEPS)
-            assert r.returncode == 0, r.stderr[-3000:]
+            assert r.returncode == 0, _failure(r.stdout, r.stderr)
             runs[name] = (out, r.stdout)
             continue
         procs = []
@@ -143,8 +151,8 @@ def test_two_launchers_as_two_nodes_train_what_one_node_of_two_ranks_trains(spli
             cmd = _torchrun_cmd(split, out, STEPS, launch)
             procs.append(subprocess.Popen(cmd, env=_env(), stdout=PIPE, stderr=PIPE, text=True))
         outs = [p.communicate(timeout=300) for p in procs]
-        for p, (_, err) in zip(procs, outs, strict=True):
-            assert p.returncode == 0, err[-3000:]
+        for p, (out_k, err) in zip(procs, outs, strict=True):
+            assert p.returncode == 0, _failure(out_k, err)
         # The node-rank-1 agent's rank (global rank 1, local rank 0) stays silent.
         assert outs[0][0].count("svorf train:") == 1 and "svorf train:" not in outs[1][0]
         runs[name] = (out, outs[0][0])
