@@ -206,10 +206,15 @@ def variant_adjustments(base_cfg: Any, variant: str) -> tuple[dict[str, Any], li
     comp = VARIANTS.get(variant, {}).get("composition")
     if comp == "slot_mixer" and getattr(base_cfg, "slot_locality", None) is not None:
         changes.update(slot_locality=None, slot_centre="learned")
+        narrow = getattr(base_cfg, "slot_locality_narrow", None)
+        if narrow is not None:  # the radius schedule goes with the radius
+            changes["slot_locality_narrow"] = None
         notes.append(
             f"{variant}: Slot-Mixer composition has no per-slot density to localise, so the "
             f"base config's slot_locality={base_cfg.slot_locality} and "
-            f"slot_centre={base_cfg.slot_centre!r} are off for this model (slot_locality=None)."
+            f"slot_centre={base_cfg.slot_centre!r}"
+            + (f" (narrowed by slot_locality_narrow={narrow})" if narrow is not None else "")
+            + " are off for this model (slot_locality=None)."
         )
     return changes, notes
 

@@ -53,6 +53,16 @@ def test_slot_mixer_at_cpu_scale_says_what_it_changed():
     assert adapter.model_config("cpu", "clevr567", "slot_mixer").slot_locality is None
     # ... and nothing changes where nothing conflicts.
     assert adapter.variant_adjustments(base, "wo_sa") == ({}, [])
+    # A narrowing radius schedule goes with the radius.
+    narrowed = dataclasses.replace(base, slot_locality_narrow=(0.6, 0.3, 0.8))
+    changes, notes = adapter.variant_adjustments(narrowed, "slot_mixer")
+    assert changes == {
+        "slot_locality": None,
+        "slot_locality_narrow": None,
+        "slot_centre": "learned",
+    }
+    assert "slot_locality_narrow" in notes[0]
+    assert dataclasses.replace(narrowed, **changes).slot_locality is None  # a valid config
 
 
 @pytest.fixture(scope="module")
