@@ -47,22 +47,21 @@ def test_every_cell_builds_a_config(scale, preset, variant):
 def test_slot_mixer_at_cpu_scale_says_what_it_changed():
     base, _ = adapter.base_configs("cpu", "clevr567", "slot_mixer")
     assert base.slot_locality is not None  # the recipe's locality ...
+    assert base.slot_locality_narrow is not None  # ... and its narrowing schedule
     changes, notes = adapter.variant_adjustments(base, "slot_mixer")
-    assert changes == {"slot_locality": None, "slot_centre": "learned"}
-    assert notes and "Slot-Mixer" in notes[0]
-    assert adapter.model_config("cpu", "clevr567", "slot_mixer").slot_locality is None
-    # ... and nothing changes where nothing conflicts.
-    assert adapter.variant_adjustments(base, "wo_sa") == ({}, [])
-    # A narrowing radius schedule goes with the radius.
-    narrowed = dataclasses.replace(base, slot_locality_narrow=(0.6, 0.3, 0.8))
-    changes, notes = adapter.variant_adjustments(narrowed, "slot_mixer")
     assert changes == {
         "slot_locality": None,
         "slot_locality_narrow": None,
         "slot_centre": "learned",
     }
-    assert "slot_locality_narrow" in notes[0]
-    assert dataclasses.replace(narrowed, **changes).slot_locality is None  # a valid config
+    assert notes and "Slot-Mixer" in notes[0] and "slot_locality_narrow" in notes[0]
+    assert adapter.model_config("cpu", "clevr567", "slot_mixer").slot_locality is None
+    # ... and nothing changes where nothing conflicts.
+    assert adapter.variant_adjustments(base, "wo_sa") == ({}, [])
+    # Without a narrowing schedule only the radius and the centres go.
+    plain = dataclasses.replace(base, slot_locality_narrow=None)
+    changes, _ = adapter.variant_adjustments(plain, "slot_mixer")
+    assert changes == {"slot_locality": None, "slot_centre": "learned"}
 
 
 @pytest.fixture(scope="module")
