@@ -109,6 +109,15 @@ def _parser() -> argparse.ArgumentParser:
         "'not_trained'",
     )
     r.add_argument(
+        "--train-only",
+        default=None,
+        metavar="V[,V]",
+        help="table protocols and editing: train only these model variants in this run "
+        "(e.g. wo_nvs,slot_mixer; `--show-config` lists a protocol's variants); the other "
+        "rows are scored if an earlier run with the same settings trained their model, else "
+        "null with the reason 'not_trained'. Builds a table over several runs",
+    )
+    r.add_argument(
         "--backend",
         default="local",
         choices=("local", "ray"),
@@ -183,6 +192,7 @@ def _run(args: argparse.Namespace) -> int:
         ("--datasets", only),
         ("--train-minutes", args.train_minutes),
         ("--no-train", True if args.no_train else None),
+        ("--train-only", args.train_only),
     )
     for flag, value in model_only:
         if value is not None and args.name not in MODEL_PROTOCOLS:
@@ -217,6 +227,7 @@ def _run(args: argparse.Namespace) -> int:
         backend=args.backend,
         address=args.address,
         no_train=args.no_train,
+        train_only=None if args.train_only is None else args.train_only.split(","),
     )
     if args.show_config:
         from benchmark.protocols.tables import MEASURED_ROWS
@@ -286,7 +297,7 @@ def summary_lines(report: dict[str, Any], path: str | os.PathLike) -> list[str]:
         if r.get("failed"):
             lines.append(f"FAILED row {r['table']} / {r['model']} / {r['dataset']}: {r['failed']}")
         elif any(str(v).startswith("not_trained") for v in r.get("null_reasons", {}).values()):
-            lines.append(f"not trained (--no-train): {r['table']} / {r['model']} / {r['dataset']}")
+            lines.append(f"not trained in this run: {r['table']} / {r['model']} / {r['dataset']}")
     data = _data_line(report.get("datasets", []))
     if data:
         lines.append(data)

@@ -140,6 +140,10 @@ class Context:
         no_train: train nothing: rows whose model has no finished cached run get null
             metrics with the reason ``not_trained`` (``--no-train``: score the rows whose
             models an earlier run of the same settings trained).
+        train_only: model variants (``full``, ``wo_nvs``, ...) this run may train (None =
+            every one); the other rows are scored only if an earlier run trained their
+            model, as with ``no_train`` (``--train-only``: build a table over several
+            runs, the models that matter most first).
     """
 
     def __init__(
@@ -160,6 +164,7 @@ class Context:
         backend: str = "local",
         address: str | None = None,
         no_train: bool = False,
+        train_only: list[str] | tuple[str, ...] | None = None,
     ) -> None:
         if backend not in BACKENDS:
             raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -169,6 +174,24 @@ class Context:
         self.address = address
         #: Only reuse finished cached models; rows whose model is not trained stay null.
         self.no_train = bool(no_train)
+        if train_only is not None:
+            from benchmark.adapter import VARIANTS
+
+            train_only = tuple(dict.fromkeys(str(v).strip() for v in train_only if str(v).strip()))
+            unknown = [v for v in train_only if v not in VARIANTS]
+            if not train_only:
+                raise ValueError(
+                    f"--train-only: no model variant given (choose from {', '.join(VARIANTS)})"
+                )
+            if unknown:
+                raise ValueError(
+                    f"--train-only: no model variant {unknown[0]!r}"
+                    f"{did_you_mean(unknown[0], list(VARIANTS))} (choose from {', '.join(VARIANTS)})"
+                )
+            if no_train:
+                raise ValueError("--train-only and --no-train: pass one of them, not both")
+        #: The model variants this run may train (None = all).
+        self.train_only = train_only
         #: Model keys trained by this run outside this process (Ray workers).
         self.trained_elsewhere: set[str] = set()
         self.protocol = protocol
@@ -334,6 +357,20 @@ class Context:
         the paper starts Room-Diverse from a CLEVR-567 model), None for most models."""
         pre = adapter.init_preset(job.train_preset)
         return None if pre is None else ModelJob("full", pre)
+
+    def may_train(self, job: ModelJob) -> bool:
+        """Whether this run may train ``job``'s model (``--no-train``, ``--train-only``)."""
+        if self.no_train:
+            return False
+        return self.train_only is None or job.variant in self.train_only
+
+    def not_trained_why(self, job: ModelJob) -> str:
+        """Why a row of ``job`` has no model (``may_train`` was False, none was cached)."""
+        flag = "--no-train" if self.no_train else f"--train-only {','.join(self.train_only or ())}"
+        return (
+            f"{flag}: no finished run of model {job.variant} on {job.train_preset} with these "
+            f"settings; run the same command without {flag.split()[0]} to train it"
+        )
 
     def model(self, job: ModelJob, train: bool = True) -> ModelRecord | None:
         """Train ``job`` or reuse the cached run with the same key (timed under ``training``).
@@ -519,6 +556,7 @@ class Context:
             "train_minutes": self.train_minutes,
             "data_source": self.data_source,
             "only_datasets": None if self.only_datasets is None else list(self.only_datasets),
+            "train_only": None if self.train_only is None else list(self.train_only),
             "backend": self.backend,
         }
         return rep

@@ -144,7 +144,7 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
         for spec in specs:
             # A model that starts from another's weights trains after it, in the row loop.
             if (
-                not ctx.no_train
+                ctx.may_train(spec.job)
                 and ctx.init_job(spec.job) is None
                 and ctx.model(spec.job, train=False) is None
             ):

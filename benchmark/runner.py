@@ -183,13 +183,9 @@ def run_table_protocol(
                 state["records"][(spec.job, spec.dataset)] = rec
             continue
         try:
-            rec = ctx.model(spec.job, train=not ctx.no_train)
-            if rec is None:  # --no-train and no finished cached run
-                why = (
-                    f"--no-train: no finished run of model {spec.job.variant} on "
-                    f"{spec.job.train_preset} with these settings; run the same command "
-                    "without --no-train to train it"
-                )
+            rec = ctx.model(spec.job, train=ctx.may_train(spec.job))
+            if rec is None:  # --no-train / --train-only and no finished cached run
+                why = ctx.not_trained_why(spec.job)
                 not_trained.append(f"{spec.table} / {spec.model} / {spec.dataset}")
                 rows.append(unavailable_row(spec, why, kind="not_trained").to_dict())
                 continue
@@ -232,7 +228,8 @@ def run_table_protocol(
     if not_trained:
         report["status"] = "partial"
         ctx.notes.append(
-            "Rows not trained in this run (--no-train; metrics null, reason 'not_trained'): "
+            "Rows not trained in this run (--no-train or --train-only; metrics null, reason "
+            "'not_trained'): "
             + "; ".join(not_trained)
         )
     if unavailable:

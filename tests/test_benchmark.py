@@ -445,6 +445,47 @@ def test_no_train_scores_only_cached_models(tmp_path):
     assert by_model["sVORF (w/o SA)"]["metrics"]["fg_ari"] is None
 
 
+def test_train_only_trains_the_named_variants_and_scores_cached_others(tmp_path):
+    rows = _tiny_rows()
+
+    def ctx(**kw):
+        return Context(
+            "ablation", "smoke", tmp_path / "reports", tmp_path / "data",
+            data_source="synthetic", progress=False, train_steps=2, **kw,
+        )  # fmt: skip
+
+    report = json.loads(
+        run_table_protocol(ctx(train_only=["wo_sa"]), ["tab:ablation"], rows, None).read_text()
+    )
+    validate_report(report)
+    assert report["scale_settings"]["train_only"] == ["wo_sa"]
+    by_model = {r["model"]: r for r in report["rows"] if r["source"] == "measured"}
+    assert by_model["sVORF (w/o SA)"]["metrics"]["fg_ari"] is not None
+    full = by_model["sVORF (ours)"]
+    assert all(v is None for v in full["metrics"].values())
+    assert all(v.startswith("not_trained: --train-only wo_sa") for v in full["null_reasons"].values())
+    assert report["status"] == "partial" and len(list((tmp_path / "reports" / "runs").iterdir())) == 1
+    # A second run that trains the other variant scores both (the first from the cache).
+    report = json.loads(
+        run_table_protocol(ctx(train_only=["full"]), ["tab:ablation"], rows, None).read_text()
+    )
+    assert report["status"] == "complete"
+    assert all(r["metrics"]["fg_ari"] is not None for r in report["rows"] if r["source"] == "measured")
+
+
+@pytest.mark.parametrize(
+    "kw, needle",
+    [
+        ({"train_only": ["wo_nvv"]}, "no model variant 'wo_nvv'; did you mean 'wo_nvs'?"),
+        ({"train_only": [" "]}, "no model variant given"),
+        ({"train_only": ["full"], "no_train": True}, "pass one of them, not both"),
+    ],
+)
+def test_train_only_refuses_bad_names(tmp_path, kw, needle):
+    with pytest.raises(ValueError, match=re.escape(needle)):
+        Context("ablation", "smoke", tmp_path / "r", tmp_path / "d", **kw)
+
+
 def test_row_store_ignores_rows_of_another_context(tmp_path):
     a = RowStore(tmp_path, {"scale": "smoke"})
     a.put({"id": "x|y", "v": 1})

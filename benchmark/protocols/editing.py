@@ -241,12 +241,9 @@ def run_editing(ctx: Context) -> Path:
         for name, variant in EDITING_MODELS:
             job = ModelJob(variant, dataset)
             try:
-                rec = ctx.model(job, train=not ctx.no_train)
+                rec = ctx.model(job, train=ctx.may_train(job))
                 if rec is None:  # --no-train and no finished cached run (as the tables)
-                    why = (
-                        f"--no-train: no finished run of model {variant} on {dataset} with "
-                        "these settings; run the same command without --no-train to train it"
-                    )
+                    why = ctx.not_trained_why(job)
                     not_trained.append(f"{name} / {dataset}")
                     rows.extend(_null_rows(name, variant, dataset, f"not_trained: {why}",
                                            {"train_dataset": f"{dataset}/train"}))  # fmt: skip
@@ -309,7 +306,8 @@ def run_editing(ctx: Context) -> Path:
     if not_trained:
         report["status"] = "partial"
         ctx.notes.append(
-            "Rows not trained in this run (--no-train; metrics null, reason 'not_trained'): "
+            "Rows not trained in this run (--no-train or --train-only; metrics null, "
+            "reason 'not_trained'): "
             + "; ".join(not_trained)
         )
     models = _models_note(ctx)
