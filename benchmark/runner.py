@@ -229,8 +229,7 @@ def run_table_protocol(
         report["status"] = "partial"
         ctx.notes.append(
             "Rows not trained in this run (--no-train or --train-only; metrics null, reason "
-            "'not_trained'): "
-            + "; ".join(not_trained)
+            "'not_trained'): " + "; ".join(not_trained)
         )
     if unavailable:
         report["status"] = "partial"

@@ -463,14 +463,20 @@ def test_train_only_trains_the_named_variants_and_scores_cached_others(tmp_path)
     assert by_model["sVORF (w/o SA)"]["metrics"]["fg_ari"] is not None
     full = by_model["sVORF (ours)"]
     assert all(v is None for v in full["metrics"].values())
-    assert all(v.startswith("not_trained: --train-only wo_sa") for v in full["null_reasons"].values())
-    assert report["status"] == "partial" and len(list((tmp_path / "reports" / "runs").iterdir())) == 1
+    assert all(
+        v.startswith("not_trained: --train-only wo_sa") for v in full["null_reasons"].values()
+    )
+    assert (
+        report["status"] == "partial" and len(list((tmp_path / "reports" / "runs").iterdir())) == 1
+    )
     # A second run that trains the other variant scores both (the first from the cache).
     report = json.loads(
         run_table_protocol(ctx(train_only=["full"]), ["tab:ablation"], rows, None).read_text()
     )
     assert report["status"] == "complete"
-    assert all(r["metrics"]["fg_ari"] is not None for r in report["rows"] if r["source"] == "measured")
+    assert all(
+        r["metrics"]["fg_ari"] is not None for r in report["rows"] if r["source"] == "measured"
+    )
 
 
 @pytest.mark.parametrize(

@@ -171,7 +171,10 @@ def test_no_train_scores_the_cached_model_and_leaves_the_others_not_trained(
         (("editing", "--backend", "ray"), "--backend applies to the table protocols"),
         (("stability", "--no-train"), "--no-train applies to the protocols that train models"),
         (("stability", "--train-only", "full"), "--train-only applies to the protocols that"),
-        (("editing", "--train-only", "wo_nvv"), "no model variant 'wo_nvv'; did you mean 'wo_nvs'?"),
+        (
+            ("editing", "--train-only", "wo_nvv"),
+            "no model variant 'wo_nvv'; did you mean 'wo_nvs'?",
+        ),
     ],
 )
 def test_bad_run_options_are_one_line_errors_before_any_work(tmp_path, capsys, args, needle):

@@ -307,8 +307,7 @@ def run_editing(ctx: Context) -> Path:
         report["status"] = "partial"
         ctx.notes.append(
             "Rows not trained in this run (--no-train or --train-only; metrics null, "
-            "reason 'not_trained'): "
-            + "; ".join(not_trained)
+            "reason 'not_trained'): " + "; ".join(not_trained)
         )
     models = _models_note(ctx)
     if models:
