@@ -168,7 +168,7 @@ def check_orderings(
                 "seed_spread_reason": spread_reason,
                 "why_null": None
                 if measured_holds is not None
-                else "a measured value is missing (row failed, left out or not computed)",
+                else "a measured value is missing (row failed, not trained, left out or not computed)",
             }
         )
     return out
