@@ -43,6 +43,21 @@ def _find_reports(root: Path) -> list[Path]:
     )
 
 
+def _budget(report: dict[str, Any]) -> str | None:
+    """A measured row's training budget per model: ``"60 min"``, ``"2000 steps"`` or None."""
+    settings = report.get("scale_settings") or {}
+    minutes, steps = settings.get("train_minutes"), settings.get("train_steps_override")
+    if minutes is not None:
+        return f"{minutes:g} min"
+    return None if steps is None else f"{steps} steps"
+
+
+def _rank(entry: dict[str, Any]) -> tuple[bool, str]:
+    """Order of preference of two rows with the same key: measured numbers, then newest."""
+    has_value = any(v is not None for v in (entry.get("metrics") or {}).values())
+    return has_value, entry["created_utc"]
+
+
 def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]:
     """Merge every valid ``report.json`` under ``root``.
 
@@ -87,6 +102,8 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
             # Measured rows of different training seeds are different entries (a recipe is
             # judged at two seeds); baselines and paper rows do not depend on it.
             seed = report.get("seeds", {}).get("train") if src == "measured" else None
+            # ... and so are rows of different training budgets (60 minutes, 2,000 steps).
+            budget = _budget(report) if src == "measured" else None
             key = (
                 None if src == "paper" else report["protocol"],
                 scale,
@@ -95,6 +112,7 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
                 row["dataset"],
                 src,
                 seed,
+                budget,
             )
             entry = dict(row)
             entry.update(
@@ -106,9 +124,12 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
                 device=report["hardware"].get("device"),
                 position=pos,
                 seed=seed,
+                budget=budget,
             )
+            # The newest row wins, except that a row without numbers (not trained, failed,
+            # data unavailable) never replaces one with numbers.
             old = best.get(key)
-            if old is None or old["created_utc"] <= entry["created_utc"]:
+            if old is None or _rank(old) <= _rank(entry):
                 best[key] = entry
     order = {t: i for i, t in enumerate(PAPER_TABLES)}
     src_order = {"paper": 0, "measured": 1, "baseline": 2}
@@ -121,6 +142,7 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
             src_order[e["source"]],
             e.get("scale") or "",
             e["seed"] if e["seed"] is not None else -1,
+            e.get("budget") or "",
             e["position"],
         ),
     )
@@ -154,13 +176,14 @@ def _wrap(text: str, width: int, indent: str = "") -> list[str]:
 
 
 def _source(r: dict[str, Any]) -> str:
-    """Who the row's numbers come from: ``paper``, ``smoke seed 0`` (measured at a scale
-    and training seed) or ``smoke baseline``."""
+    """Who the row's numbers come from: ``paper``, ``cpu seed 0, 60 min`` (measured at a
+    scale, training seed and budget per model) or ``smoke baseline``."""
     if r["source"] == "paper":
         return "paper"
     if r["source"] == "baseline":
         return f"{r['scale']} baseline"
-    return f"{r['scale']} seed {r['seed']}" if r.get("seed") is not None else str(r["scale"])
+    label = f"{r['scale']} seed {r['seed']}" if r.get("seed") is not None else str(r["scale"])
+    return f"{label}, {r['budget']}" if r.get("budget") else label
 
 
 def _grid(head: list[str], body: list[list[str]], right_from: int) -> list[str]:

@@ -267,6 +267,32 @@ def test_leaderboard_merges_keeps_newest_and_skips_invalid(tmp_path):
     assert re.search(r"smoke seed 0\s+42\.0\s", text) and "42.00" not in text
 
 
+def test_leaderboard_keeps_a_measured_row_over_a_newer_one_without_numbers(tmp_path):
+    old = _good_report(created="2025-01-01T00:00:00Z")
+    new = _good_report(created="2025-02-01T00:00:00Z")
+    row = next(r for r in new["rows"] if r["source"] == "measured")
+    row["metrics"] = {k: None for k in row["metrics"]}
+    row["null_reasons"] = {k: "not_trained: --no-train" for k in row["metrics"]}
+    new["status"] = "partial"
+    write_report(tmp_path / "a" / "report.json", old)
+    write_report(tmp_path / "b" / "report.json", new)
+    measured = [e for e in merge_reports(tmp_path)["entries"] if e["source"] == "measured"]
+    assert len(measured) == 1 and measured[0]["report"] == str(Path("a") / "report.json")
+    assert any(v is not None for v in measured[0]["metrics"].values())
+
+
+def test_leaderboard_keeps_rows_of_different_budgets_apart(tmp_path):
+    short = _good_report(created="2025-01-01T00:00:00Z")
+    long = _good_report(created="2025-02-01T00:00:00Z")
+    long["scale_settings"]["train_minutes"] = 60.0
+    write_report(tmp_path / "a" / "report.json", short)
+    write_report(tmp_path / "b" / "report.json", long)
+    board = merge_reports(tmp_path)
+    budgets = sorted(str(e["budget"]) for e in board["entries"] if e["source"] == "measured")
+    assert len(budgets) == 2 and "60 min" in budgets
+    assert "smoke seed 0, 60 min" in format_leaderboard(board)
+
+
 # ---------------------------------------------------------------------- evaluation
 
 
