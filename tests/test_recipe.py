@@ -295,6 +295,42 @@ def test_fg_ari_repairs_score_each_error_kind_alone():
     assert math.isnan(fg_ari_repairs(pred, torch.zeros_like(gt), 3)["fg_ari"])
 
 
+def test_ari_repairs_score_bleed_lost_and_the_one_pixel_rim():
+    from sklearn.metrics import adjusted_rand_score
+
+    from benchmark.tools.recipe import ari_repairs
+
+    # slot 3 = background; object 1 (slot 0) claims a rim pixel beside it and one far away;
+    # object 2 is half lost to the background.
+    gt = torch.tensor([[1, 1, 0, 0, 0, 0], [1, 1, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0],
+                       [0, 0, 0, 0, 2, 2], [0, 0, 0, 0, 2, 2], [0, 0, 0, 0, 0, 0]])  # fmt: skip
+    pred = torch.tensor([[0, 0, 0, 3, 3, 0], [0, 0, 3, 3, 3, 3], [3, 3, 3, 3, 3, 3],
+                         [3, 3, 3, 3, 1, 1], [3, 3, 3, 3, 3, 3], [3, 3, 3, 3, 3, 3]])  # fmt: skip
+    r = ari_repairs(pred, gt, bg_slot=3)
+
+    def ari(labels):
+        return adjusted_rand_score(gt.reshape(-1).numpy(), torch.as_tensor(labels).reshape(-1))
+
+    assert r["ari"] == pytest.approx(ari(pred))
+    bleed = pred.clone()
+    bleed[0, 2] = bleed[0, 5] = 3
+    lost = pred.clone()
+    lost[4, 4:] = 6  # a fresh label: max(pred, bg) + 1 + id 2
+    assert r["bleed_repaired"] == pytest.approx(ari(bleed))
+    assert r["lost_repaired"] == pytest.approx(ari(lost))
+    assert r["bleed_fraction"] == pytest.approx(2 / 28)
+    assert r["bleed_within_1px"] == pytest.approx(0.5)  # (0, 2) touches object 1; (0, 5) not
+    assert r["bleed_within_2px"] == pytest.approx(0.5)
+    rim = gt.clone()
+    rim[:3, :3] = torch.where(rim[:3, :3] == 0, 1, rim[:3, :3])
+    rim[2:, 3:] = torch.where(rim[2:, 3:] == 0, 2, rim[2:, 3:])
+    assert r["rim_ceiling"] == pytest.approx(ari(rim))
+    assert min(r["bleed_repaired"], r["lost_repaired"]) > r["ari"] and r["rim_ceiling"] < 1
+    assert math.isnan(ari_repairs(torch.full_like(gt, 3), gt, 3)["bleed_within_1px"])
+    with pytest.raises(ValueError, match="same"):
+        ari_repairs(pred[:2], gt, 3)
+
+
 def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     from benchmark.tools.recipe import main
 
@@ -308,6 +344,8 @@ def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     assert set(f["fg_ari_repairs"]) == {
         "fg_ari", "bg_leak_repaired", "split_repaired", "merge_repaired"
     }  # fmt: skip
+    assert f["ari_repairs"]["ari"] == pytest.approx(final["ari"], abs=1e-6)
+    assert 0 <= f["ari_repairs"]["bleed_fraction"] <= 1
     grid = tmp_path / "g" / "grid.png"
     argv = ["diagnose", str(tmp_path / "r"), "--test", str(split), "--threads", "1"]
     assert main([*argv, "--grid", str(grid), "--grid-scenes", "2"]) == 0
