@@ -331,6 +331,22 @@ def test_ari_repairs_score_bleed_lost_and_the_one_pixel_rim():
         ari_repairs(pred[:2], gt, 3)
 
 
+def test_depth_breakdown_splits_background_at_the_sampled_box(split):
+    from benchmark.tools.recipe import depth_breakdown
+
+    ds = MultiViewDataset(split, image_size=32)
+    torch.manual_seed(0)
+    free = SVORF(model_config("smoke", num_slots=4, clip_to_box=False)).eval()
+    d = depth_breakdown(free, ds)
+    assert d["bg_outside_share"] == 0 and math.isnan(d["abs_rel_bg_outside"])
+    assert d["abs_rel_bg_inside"] > 0 and d["abs_rel_objects"] > 0 and d["n_scenes"] == 2
+    # a box smaller than any floor point the cameras see: all background is outside it
+    tiny = SVORF(model_config("smoke", num_slots=4, clip_to_box=True, box_half=0.05)).eval()
+    t = depth_breakdown(tiny, ds, n_scenes=1)
+    assert t["bg_outside_share"] == 1 and math.isnan(t["abs_rel_bg_inside"])
+    assert t["abs_rel_bg_outside"] > 0 and t["n_scenes"] == 1
+
+
 def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     from benchmark.tools.recipe import main
 
@@ -348,8 +364,9 @@ def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     assert 0 <= f["ari_repairs"]["bleed_fraction"] <= 1
     grid = tmp_path / "g" / "grid.png"
     argv = ["diagnose", str(tmp_path / "r"), "--test", str(split), "--threads", "1"]
-    assert main([*argv, "--grid", str(grid), "--grid-scenes", "2"]) == 0
+    assert main([*argv, "--grid", str(grid), "--grid-scenes", "2", "--depth"]) == 0
     saved = json.loads((tmp_path / "r" / "failures.json").read_text())
+    assert saved["depth"]["n_scenes"] == 2 and saved["depth"]["abs_rel_objects"] > 0
     assert saved["objects"] == f["objects"] and saved["step"] == final["step"]
     out = json.loads(capsys.readouterr().out)
     assert out["objects"] == f["objects"] and out["grid"] == str(grid)

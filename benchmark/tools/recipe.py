@@ -69,7 +69,10 @@ __all__ = [
     "RECIPE_LEVERS",
     "SegMetricsFn",
     "adjusted_rand_index",
+    "ari_repairs",
+    "depth_breakdown",
     "failure_breakdown",
+    "fg_ari_repairs",
     "make_eval_fn",
     "object_failures",
     "plot_runs",
@@ -364,6 +367,54 @@ def ari_repairs(pred: Tensor, gt: Tensor, bg_slot: int) -> dict[str, float]:
     }
 
 
+@torch.no_grad()
+def depth_breakdown(
+    model: SVORF, ds: MultiViewDataset, n_scenes: int | None = None, input_view: int = 0
+) -> dict[str, float]:
+    """Where the novel-view depth error lies: objects, and background inside / outside the
+    region the model samples (diagnosis only; ground truth is read only here).
+
+    With ``clip_to_box`` a ray's samples stay in the box ``|x|, |y| <= box_half``, so
+    background whose true point lies beyond it (floor seen far away) cannot get its depth
+    right: the box wall stands in for it and the floor looks like a bowl.
+
+    Returns:
+        ``abs_rel_objects``, ``abs_rel_bg_inside``, ``abs_rel_bg_outside`` (mean over
+        pixels of |pred - gt| / gt, novel views of the first ``n_scenes`` scenes, NaN where a
+        region is empty), ``bg_outside_share`` (share of background pixels whose true point
+        is outside the sampled box; 0 without ``clip_to_box``), ``n_scenes``.
+    """
+    n = len(ds) if n_scenes is None else min(int(n_scenes), len(ds))
+    half = model.cfg.box_half if model.cfg.clip_to_box else math.inf
+    err: dict[str, list[Tensor]] = {"objects": [], "bg_inside": [], "bg_outside": []}
+    for i in range(n):
+        sv = ds[i]
+        if sv.instances is None or sv.depth_z is None:
+            raise ValueError(f"depth_breakdown: {ds.root} has no instance ids or depth")
+        pred = predict_scene(model, ds, i, input_view=input_view).depth_z
+        for v in range(sv.images.shape[0]):
+            if v == input_view:
+                continue
+            gt = sv.depth_z[v]
+            ok = torch.isfinite(gt) & (gt > 0)
+            rel = (pred[v] - gt).abs() / gt
+            pts = sv.rays_o[v] + sv.rays_d[v] * (gt / sv.z_scale[v])[..., None]
+            outside = (pts[..., :2].abs() > half).any(-1)
+            bg = ok & (sv.instances[v] == 0)
+            err["objects"].append(rel[ok & (sv.instances[v] != 0)])
+            err["bg_inside"].append(rel[bg & ~outside])
+            err["bg_outside"].append(rel[bg & outside])
+    out = {}
+    for k, xs in err.items():
+        x = torch.cat(xs) if xs else torch.zeros(0)
+        out[f"abs_rel_{k}"] = float(x.mean()) if x.numel() else math.nan
+    n_in = sum(x.numel() for x in err["bg_inside"])
+    n_out = sum(x.numel() for x in err["bg_outside"])
+    out["bg_outside_share"] = n_out / (n_in + n_out) if n_in + n_out else math.nan
+    out["n_scenes"] = float(n)
+    return out
+
+
 def _nanmean(xs: list[float]) -> float:
     """Mean of the non-NaN values; NaN (without numpy's empty-slice warning) when none."""
     kept = [x for x in xs if not math.isnan(x)]
@@ -626,6 +677,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="also write a grid of held-out segmentations (the first --grid-scenes "
                     "test scenes; columns as train-eval's grid.png)")  # fmt: skip
     dg.add_argument("--grid-scenes", type=int, default=6, help="scenes in --grid (default: 6)")
+    dg.add_argument("--depth", action="store_true",
+                    help="also break the novel-view depth error down (objects, background "
+                    "inside / outside the sampled box); renders every view, slower")  # fmt: skip
     pl = sub.add_parser("plot", help="loss and held-out FG-ARI of runs over wall time (PNG)")
     pl.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     pl.add_argument("--out", required=True, help="PNG path")
@@ -652,6 +706,8 @@ def main(argv: list[str] | None = None) -> int:
         model, info = load_run(Path(a.run))
         test = MultiViewDataset(a.test, image_size=model.cfg.image_size, max_scenes=a.scenes)
         res = {"step": info.step, **failure_breakdown(model, test)}
+        if a.depth:
+            res["depth"] = depth_breakdown(model, test)
         atomic_write_json(Path(a.run) / "failures.json", res)
         if a.grid:
             res["grid"] = str(save_segmentation_grid(model, test, a.grid, a.grid_scenes))
