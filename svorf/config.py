@@ -135,6 +135,13 @@ class ModelConfig:
     above the objects; the slab puts them where the objects are (about 3x denser on CLEVR's
     cameras), and the ray's last, opaque sample lies just under the floor, where the
     background slot paints it. None: the cube (paper)."""
+    clip_floor_z: float | None = None
+    """With ``clip_to_box``: the ground plane's height (world units, world frame). A downward
+    ray that leaves the box before it reaches z = ``clip_floor_z`` (the floor seen beyond the
+    box, half the floor pixels on CLEVR's cameras) gets samples out to that plane (at most
+    ``far``) instead of ending on the box wall, where the background otherwise paints the
+    far floor, so its depth is a bowl. Foreground density stays inside ``fg_box``. None:
+    the box's exit (off at every scale)."""
     coord_frame: CoordFrame = "input_azimuth"
     """Frame of the coordinates the networks see (gamma(x), gamma(d), the composition).
     "input_azimuth": the world frame rotated about the up axis (z) so that the input
@@ -431,6 +438,11 @@ class ModelConfig:
                     f"ceiling <= box_half and needs clip_to_box=True, got box_z={self.box_z}, "
                     f"box_half={self.box_half}, clip_to_box={self.clip_to_box}"
                 )
+        if self.clip_floor_z is not None and not self.clip_to_box:
+            raise ValueError(
+                f"ModelConfig.clip_floor_z={self.clip_floor_z} needs clip_to_box=True (without "
+                "the box every ray already reaches far); set clip_to_box=True or clip_floor_z=None"
+            )
         if self.bg_outside_fg and self.fg_box is None and self.fg_zmin is None:
             raise ValueError("ModelConfig.bg_outside_fg needs fg_box or fg_zmin (the region)")
         if self.bg_floor_slab is not None:
@@ -569,6 +581,7 @@ _OMITTED_WHEN_NONE = (
     "box_z",
     "bg_chroma_fade",
     "slot_locality_narrow",
+    "clip_floor_z",
 )
 _OMITTED_WHEN_FALSE = ("bg_achromatic",)
 

@@ -395,7 +395,7 @@ class SVORF(nn.Module):
         B, R, _ = rays_o.shape
         if cfg.clip_to_box:
             near_r, far_r = clip_rays_to_box(
-                rays_o, rays_d, cfg.near, cfg.far, cfg.box_half, cfg.box_z
+                rays_o, rays_d, cfg.near, cfg.far, cfg.box_half, cfg.box_z, cfg.clip_floor_z
             )
         else:
             near_r = rays_o.new_full((B, R), cfg.near)

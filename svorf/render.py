@@ -203,6 +203,7 @@ def clip_rays_to_box(
     far: float,
     half: float,
     z_range: tuple[float, float] | None = None,
+    floor_z: float | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Per-ray [near, far] clipped to the box [-half, half]^3, or to the slab
     [-half, half]^2 x [z_range[0], z_range[1]] when ``z_range`` is given.
@@ -210,7 +211,10 @@ def clip_rays_to_box(
     Rays that miss the slab (above the objects towards the horizon) keep the cube's
     interval; rays that miss the cube (or whose clipped interval is empty) keep the full
     [near, far], so every ray still has valid, sorted samples (the background slot then
-    colours them).
+    colours them). With ``floor_z``, a downward ray whose interval ends before it reaches
+    the plane z = ``floor_z`` (it leaves the box through a side wall: floor seen beyond
+    the box) is extended to that plane, at most to ``far``, so that the background can put
+    the far floor where it is instead of on the box wall.
 
     Returns:
         near_r [...], far_r [...] float32 with near <= near_r < far_r <= far.
@@ -222,4 +226,10 @@ def clip_rays_to_box(
         lo, hi = t_enter.clamp(min=near), t_exit.clamp(max=far)
         ok = hit & (hi > lo + 1e-6)
         near_r, far_r = torch.where(ok, lo, near_r), torch.where(ok, hi, far_r)
+    if floor_z is not None:
+        dz = rays_d[..., 2].float()
+        down = dz < -1e-9
+        t_floor = (float(floor_z) - rays_o[..., 2].float()) / torch.where(down, dz, -1.0)
+        extend = down & (t_floor > far_r)
+        far_r = torch.where(extend, t_floor.clamp(max=float(far)), far_r)
     return near_r, far_r

@@ -205,6 +205,40 @@ def test_ray_box_clipping_to_a_z_slab():
     )
 
 
+def test_clip_floor_z_extends_rays_that_see_the_floor_beyond_the_box():
+    """clip_floor_z: a ray leaving the box through a side wall goes on to the ground plane."""
+    o = torch.tensor([9.5, 0.0, 8.0])
+    targets = torch.tensor([
+        [-8.0, 0.0, 0.0],  # floor beyond the far wall (x = -4.5): extended to it
+        [0.0, 0.0, 0.0],   # floor at the centre: the box's interval already reaches it
+        [-60.0, 0.0, 0.0],  # floor beyond far: extended to far only
+    ])  # fmt: skip
+    d = torch.nn.functional.normalize(targets - o, dim=-1)
+    d = torch.cat([d, torch.tensor([[0.0, 0.6, 0.8]])])  # upward: never reaches the floor
+    oo = o.expand(4, 3)
+    near0, far0 = clip_rays_to_box(oo, d, 6.0, 20.0, 4.5)
+    near, far = clip_rays_to_box(oo, d, 6.0, 20.0, 4.5, floor_z=0.0)
+    assert torch.equal(near, near0)
+    assert far[0].item() == pytest.approx((targets[0] - o).norm().item(), rel=1e-5)
+    assert far0[0].item() < far[0].item()  # it used to end on the box wall
+    assert far[1].item() == far0[1].item() and far[3].item() == far0[3].item()
+    assert far[2].item() == pytest.approx(20.0)
+    from svorf.config import ModelConfig
+
+    with pytest.raises(ValueError, match="clip_to_box"):
+        ModelConfig(clip_floor_z=0.0)
+    assert "clip_floor_z" not in ModelConfig().to_dict()  # off: run keys stay as they were
+    assert ModelConfig(clip_to_box=True, clip_floor_z=0.0).to_dict()["clip_floor_z"] == 0.0
+    from svorf.config import model_config
+    from svorf.model import SVORF
+
+    torch.manual_seed(0)
+    cfg = model_config("smoke", num_slots=3, clip_to_box=True, clip_floor_z=0.0)
+    out = SVORF(cfg).eval()(torch.rand(1, 3, cfg.image_size, cfg.image_size), oo[None], d[None])
+    assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
+    assert out.depth[0, 0].item() <= far[0].item() + 1e-3  # may reach the floor beyond the wall
+
+
 def test_box_z_needs_clip_to_box_and_an_ordered_range():
     from svorf.config import ModelConfig
 
