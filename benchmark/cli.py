@@ -354,6 +354,10 @@ def _verdict_lines(report: dict[str, Any]) -> list[str]:
             ref = paper.get((v.get("table"), v["dataset"], v["model"]))
             if ref is not None:
                 parts.append(f"paper {ref:.1f}")
+            if v.get("background_split") and outcome:
+                parts.append(
+                    "but the background is split among the slots (ARI below chance + margin)"
+                )
             lines.append(f"{label}: {', '.join(parts)}")
     return lines
 

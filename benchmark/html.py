@@ -161,6 +161,13 @@ def _verdicts(report: dict[str, Any]) -> str:
         )
     else:
         head = f"<div class=ok><b>Every measured row decomposes</b> at scale '{_e(scale)}'.</div>"
+    split = [v for v in yes if v.get("background_split")]
+    if split:
+        head += (
+            f"<div class=warn><b>{len(split)} of the rows that decompose split the background"
+            f"</b> among their slots: ARI (every pixel) below the best chance baseline's + the "
+            f"margin. FG-ARI, which the verdict uses, does not score background pixels.</div>"
+        )
     out = [
         head,
         (

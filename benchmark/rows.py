@@ -161,6 +161,12 @@ def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[di
 
     ``decomposes`` is None when FG-ARI is null, or when the chance rule passes but the
     control is missing (null or absent from the row), since then it cannot be told.
+
+    FG-ARI ignores background pixels, so a model whose slots each take an object *and* a
+    share of the floor and walls around it can pass. ``background_split`` says so (it does
+    not change ``decomposes``): True when the row's ARI (every pixel) is below the best
+    chance baseline's ARI + M; the message of such a row then says that the background is
+    divided among the slots. None when ARI or a chance ARI is missing.
     """
     margin = settings.decompose_margin
     out = []
@@ -177,6 +183,19 @@ def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[di
             and b["metrics"].get("fg_ari") is not None
         ]
         best = max(chance) if chance else None
+        chance_ari = [
+            b["metrics"].get("ari")
+            for b in rows
+            if b["source"] == "baseline"
+            and b["table"] == r["table"]
+            and b["dataset"] == r["dataset"]
+            and b["metrics"].get("ari") is not None
+        ]
+        best_ari = max(chance_ari) if chance_ari else None
+        ari = r["metrics"].get("ari")
+        split: bool | None = None
+        if ari is not None and best_ari is not None:
+            split = ari < best_ari + margin
         paper = [
             p["metrics"].get("fg_ari")
             for p in rows
@@ -234,6 +253,12 @@ def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[di
                 f"decomposes: FG-ARI {fg:.1f} vs {chance_txt} and {shuffled:.1f} with another "
                 f"scene's slots{paper_txt}."
             )
+            if split:
+                msg += (
+                    f" The background is not one slot: ARI {ari:.1f} (every pixel) vs best "
+                    f"chance {best_ari:.1f} + {margin:.0f}: the slots divide the floor and walls "
+                    f"among them, which FG-ARI does not score."
+                )
         out.append(
             {
                 "table": r["table"],
@@ -243,6 +268,7 @@ def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[di
                 "fg_ari": fg,
                 "chance_fg_ari": best,
                 "fg_ari_shuffled": shuffled,
+                "background_split": split,
                 "message": msg,
             }
         )

@@ -40,8 +40,10 @@ def split(tmp_path_factory):
 # ---------------------------------------------------------------------- verdict rule
 
 
-def _rows(fg: float, chance: float, shuffled: float | None) -> list[dict]:
-    metrics = {"fg_ari": fg, "ari": 40.0, "fg_ari_shuffled": shuffled}
+def _rows(
+    fg: float, chance: float, shuffled: float | None, ari: float = 40.0, chance_ari: float = 0.5
+) -> list[dict]:
+    metrics = {"fg_ari": fg, "ari": ari, "fg_ari_shuffled": shuffled}
     reasons = {} if shuffled is not None else {"fg_ari_shuffled": CONTROL_REASON}
     measured = {
         "id": "m",
@@ -58,7 +60,7 @@ def _rows(fg: float, chance: float, shuffled: float | None) -> list[dict]:
         "model": "chance: K image blocks (2 rows)",
         "dataset": "clevr567",
         "source": "baseline",
-        "metrics": {"fg_ari": chance},
+        "metrics": {"fg_ari": chance, "ari": chance_ari},
         "null_reasons": {},
     }
     return [measured, baseline]
@@ -94,6 +96,42 @@ def test_verdict_requires_beating_the_scene_shuffle_control():
     # Control missing while the chance rule passes: undecided, with the reason.
     (v,) = verdicts_for(_rows(80.0, 30.0, None), settings)
     assert v["decomposes"] is None and "needs_two_scenes" in v["message"]
+
+
+def test_verdict_says_when_the_background_is_split_among_the_slots():
+    """FG-ARI ignores background pixels: slots that each take an object and the floor
+    around it pass the rule. The verdict keeps ``decomposes`` and says so."""
+    settings = get_scale("cpu")
+    (v,) = verdicts_for(_rows(74.1, 50.8, 48.6, ari=2.2, chance_ari=0.5), settings)
+    assert v["decomposes"] is True and v["background_split"] is True
+    assert "The background is not one slot: ARI 2.2" in v["message"]
+    # ARI far above chance: no such sentence.
+    (v,) = verdicts_for(_rows(74.1, 50.8, 48.6, ari=72.0, chance_ari=0.5), settings)
+    assert v["background_split"] is False and "background" not in v["message"]
+    # Exactly chance + margin is not split (the same >= as the FG-ARI rules).
+    (v,) = verdicts_for(_rows(74.1, 50.8, 48.6, ari=20.5, chance_ari=0.5), settings)
+    assert v["background_split"] is False
+    # No ARI on the row: cannot be told.
+    rows = _rows(74.1, 50.8, 48.6)
+    del rows[0]["metrics"]["ari"]
+    (v,) = verdicts_for(rows, settings)
+    assert v["background_split"] is None and v["decomposes"] is True
+
+
+def test_command_summary_and_page_name_a_split_background():
+    from benchmark.cli import _verdict_lines
+    from benchmark.html import _verdicts
+
+    settings = get_scale("cpu")
+    rows = _rows(74.1, 50.8, 48.6, ari=2.2, chance_ari=0.5)
+    report = {"scale": "cpu", "rows": rows, "verdicts": verdicts_for(rows, settings)}
+    lines = "\n".join(_verdict_lines(report))
+    assert "decomposes (1 of 1)" in lines and "background is split among the slots" in lines
+    assert "1 of the rows that decompose split the background" in _verdicts(report)
+    rows = _rows(74.1, 50.8, 48.6, ari=72.0, chance_ari=0.5)
+    report = {"scale": "cpu", "rows": rows, "verdicts": verdicts_for(rows, settings)}
+    assert "background" not in "\n".join(_verdict_lines(report))
+    assert "split the background" not in _verdicts(report)
 
 
 # ---------------------------------------------------------------------- adapter passthrough
