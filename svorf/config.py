@@ -142,6 +142,11 @@ class ModelConfig:
     ``far``) instead of ending on the box wall, where the background otherwise paints the
     far floor, so its depth is a bowl. Foreground density stays inside ``fg_box``. None:
     the box's exit (off at every scale)."""
+    clip_floor_front: bool = False
+    """With ``clip_floor_z``: a downward ray that reaches the ground plane before it enters
+    the box (the floor in front of or beside the box, at the image's near corners) is
+    sampled from ``near`` to that plane; otherwise its samples lie in the box under the
+    floor and its depth is too far. Off at every scale."""
     coord_frame: CoordFrame = "input_azimuth"
     """Frame of the coordinates the networks see (gamma(x), gamma(d), the composition).
     "input_azimuth": the world frame rotated about the up axis (z) so that the input
@@ -443,6 +448,11 @@ class ModelConfig:
                 f"ModelConfig.clip_floor_z={self.clip_floor_z} needs clip_to_box=True (without "
                 "the box every ray already reaches far); set clip_to_box=True or clip_floor_z=None"
             )
+        if self.clip_floor_front and self.clip_floor_z is None:
+            raise ValueError(
+                "ModelConfig.clip_floor_front=True needs clip_floor_z (the ground plane's "
+                "height); set clip_floor_z or clip_floor_front=False"
+            )
         if self.bg_outside_fg and self.fg_box is None and self.fg_zmin is None:
             raise ValueError("ModelConfig.bg_outside_fg needs fg_box or fg_zmin (the region)")
         if self.bg_floor_slab is not None:
@@ -583,7 +593,7 @@ _OMITTED_WHEN_NONE = (
     "slot_locality_narrow",
     "clip_floor_z",
 )
-_OMITTED_WHEN_FALSE = ("bg_achromatic",)
+_OMITTED_WHEN_FALSE = ("bg_achromatic", "clip_floor_front")
 
 
 def _check_choice(name: str, value: object, literal: object) -> None:

@@ -394,9 +394,8 @@ class SVORF(nn.Module):
         cfg = self.cfg
         B, R, _ = rays_o.shape
         if cfg.clip_to_box:
-            near_r, far_r = clip_rays_to_box(
-                rays_o, rays_d, cfg.near, cfg.far, cfg.box_half, cfg.box_z, cfg.clip_floor_z
-            )
+            box = (cfg.box_half, cfg.box_z, cfg.clip_floor_z, cfg.clip_floor_front)
+            near_r, far_r = clip_rays_to_box(rays_o, rays_d, cfg.near, cfg.far, *box)
         else:
             near_r = rays_o.new_full((B, R), cfg.near)
             far_r = rays_o.new_full((B, R), cfg.far)

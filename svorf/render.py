@@ -204,6 +204,7 @@ def clip_rays_to_box(
     half: float,
     z_range: tuple[float, float] | None = None,
     floor_z: float | None = None,
+    floor_front: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Per-ray [near, far] clipped to the box [-half, half]^3, or to the slab
     [-half, half]^2 x [z_range[0], z_range[1]] when ``z_range`` is given.
@@ -214,7 +215,10 @@ def clip_rays_to_box(
     colours them). With ``floor_z``, a downward ray whose interval ends before it reaches
     the plane z = ``floor_z`` (it leaves the box through a side wall: floor seen beyond
     the box) is extended to that plane, at most to ``far``, so that the background can put
-    the far floor where it is instead of on the box wall.
+    the far floor where it is instead of on the box wall. With ``floor_front`` too, a
+    downward ray that reaches that plane before it enters the box (floor seen in front of
+    or beside the box: the near corners of the image) is sampled from ``near`` to the plane
+    instead of inside the box under the floor.
 
     Returns:
         near_r [...], far_r [...] float32 with near <= near_r < far_r <= far.
@@ -232,4 +236,10 @@ def clip_rays_to_box(
         t_floor = (float(floor_z) - rays_o[..., 2].float()) / torch.where(down, dz, -1.0)
         extend = down & (t_floor > far_r)
         far_r = torch.where(extend, t_floor.clamp(max=float(far)), far_r)
+        if floor_front:
+            front = down & (t_floor <= near_r) & (t_floor > near + 1e-3)
+            near_r = torch.where(front, torch.full_like(near_r, float(near)), near_r)
+            far_r = torch.where(front, t_floor, far_r)
+    elif floor_front:
+        raise ValueError("clip_rays_to_box: floor_front needs floor_z")
     return near_r, far_r

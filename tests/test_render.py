@@ -239,6 +239,35 @@ def test_clip_floor_z_extends_rays_that_see_the_floor_beyond_the_box():
     assert out.depth[0, 0].item() <= far[0].item() + 1e-3  # may reach the floor beyond the wall
 
 
+def test_clip_floor_front_samples_the_floor_seen_before_the_box():
+    """clip_floor_front: a ray that meets the ground plane in front of the box (and would
+    enter the box under the floor) is sampled from near to the plane."""
+    o = torch.tensor([9.5, 0.0, 8.0])
+    targets = torch.tensor([
+        [6.0, 0.0, 0.0],   # floor in front of the near wall (x = 4.5)
+        [0.0, 0.0, 0.0],   # floor at the centre: inside the box, unchanged
+        [-8.0, 0.0, 0.0],  # floor beyond the far wall: clip_floor_z's extension, unchanged
+    ])  # fmt: skip
+    d = torch.nn.functional.normalize(targets - o, dim=-1)
+    oo = o.expand(3, 3)
+    near0, far0 = clip_rays_to_box(oo, d, 6.0, 20.0, 4.5, floor_z=0.0)
+    near, far = clip_rays_to_box(oo, d, 6.0, 20.0, 4.5, floor_z=0.0, floor_front=True)
+    hit = (targets[0] - o).norm().item()
+    assert near0[0].item() > hit + 1.0  # without it: samples in the box, under the floor
+    assert near[0].item() == pytest.approx(6.0) and far[0].item() == pytest.approx(hit, rel=1e-5)
+    assert torch.equal(near[1:], near0[1:]) and torch.equal(far[1:], far0[1:])
+    with pytest.raises(ValueError, match="floor_front needs floor_z"):
+        clip_rays_to_box(oo, d, 6.0, 20.0, 4.5, floor_front=True)
+    from svorf.config import ModelConfig
+
+    with pytest.raises(ValueError, match="clip_floor_front=True needs clip_floor_z"):
+        ModelConfig(clip_to_box=True, clip_floor_front=True)
+    assert "clip_floor_front" not in ModelConfig(clip_to_box=True, clip_floor_z=0.0).to_dict()
+    cfg = ModelConfig(clip_to_box=True, clip_floor_z=0.0, clip_floor_front=True)
+    assert cfg.to_dict()["clip_floor_front"] is True
+    assert ModelConfig.from_json(cfg.to_json()) == cfg
+
+
 def test_box_z_needs_clip_to_box_and_an_ordered_range():
     from svorf.config import ModelConfig
 
