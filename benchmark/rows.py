@@ -148,6 +148,19 @@ def chance_baseline_rows(
     return rows
 
 
+def _best_chance(rows: list[dict[str, Any]], row: dict[str, Any], metric: str) -> float | None:
+    """The best chance baseline's ``metric`` on ``row``'s table and test set (None: none)."""
+    values = [
+        b["metrics"][metric]
+        for b in rows
+        if b["source"] == "baseline"
+        and b["table"] == row["table"]
+        and b["dataset"] == row["dataset"]
+        and b["metrics"].get(metric) is not None
+    ]
+    return max(values) if values else None
+
+
 def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[dict[str, Any]]:
     """Say plainly, per measured row with FG-ARI, whether the model decomposes scenes.
 
@@ -174,24 +187,8 @@ def verdicts_for(rows: list[dict[str, Any]], settings: ScaleSettings) -> list[di
         if r["source"] != "measured" or "fg_ari" not in r["metrics"]:
             continue
         fg = r["metrics"]["fg_ari"]
-        chance = [
-            b["metrics"].get("fg_ari")
-            for b in rows
-            if b["source"] == "baseline"
-            and b["table"] == r["table"]
-            and b["dataset"] == r["dataset"]
-            and b["metrics"].get("fg_ari") is not None
-        ]
-        best = max(chance) if chance else None
-        chance_ari = [
-            b["metrics"].get("ari")
-            for b in rows
-            if b["source"] == "baseline"
-            and b["table"] == r["table"]
-            and b["dataset"] == r["dataset"]
-            and b["metrics"].get("ari") is not None
-        ]
-        best_ari = max(chance_ari) if chance_ari else None
+        best = _best_chance(rows, r, "fg_ari")
+        best_ari = _best_chance(rows, r, "ari")
         ari = r["metrics"].get("ari")
         split: bool | None = None
         if ari is not None and best_ari is not None:
