@@ -118,6 +118,15 @@ def _parser() -> argparse.ArgumentParser:
         "null with the reason 'not_trained'. Builds a table over several runs",
     )
     r.add_argument(
+        "--rows-from",
+        default=None,
+        metavar="REPORT[,REPORT]",
+        help="table protocols: take measured rows from these earlier reports (report.json "
+        "or its folder, e.g. results/cpu/segmentation-60min) instead of training their "
+        "models again, where the model key, test data and evaluation settings equal this "
+        "run's; builds a table over several machines or sittings",
+    )
+    r.add_argument(
         "--backend",
         default="local",
         choices=("local", "ray"),
@@ -204,6 +213,7 @@ def _run(args: argparse.Namespace) -> int:
         ("--backend", None if args.backend == "local" else args.backend),
         ("--address", args.address),
         ("--show-config", True if args.show_config else None),
+        ("--rows-from", args.rows_from),
     )
     for flag, value in table_only:
         if value is not None and args.name not in TABLE_PROTOCOLS:
@@ -228,6 +238,9 @@ def _run(args: argparse.Namespace) -> int:
         address=args.address,
         no_train=args.no_train,
         train_only=None if args.train_only is None else args.train_only.split(","),
+        rows_from=None
+        if args.rows_from is None
+        else [p.strip() for p in args.rows_from.split(",") if p.strip()],
     )
     if args.show_config:
         from benchmark.protocols.tables import MEASURED_ROWS

@@ -41,6 +41,7 @@ from benchmark.jobs import ModelJob, evaluate_run, read_eval, train_run, write_e
 from benchmark.log import log
 from benchmark.metrics import lpips_weight_candidates
 from benchmark.report import new_report, stable_hash, write_report
+from benchmark.row_import import read_reports
 from benchmark.scales import ScaleSettings, get_scale
 from scenefmt.cli_util import did_you_mean
 
@@ -144,6 +145,9 @@ class Context:
             every one); the other rows are scored only if an earlier run trained their
             model, as with ``no_train`` (``--train-only``: build a table over several
             runs, the models that matter most first).
+        rows_from: earlier ``report.json`` files (or their folders) whose measured rows a
+            table protocol takes instead of recomputing them, where model key, test data
+            and row context match (``--rows-from``; :mod:`benchmark.row_import`).
     """
 
     def __init__(
@@ -165,6 +169,7 @@ class Context:
         address: str | None = None,
         no_train: bool = False,
         train_only: list[str] | tuple[str, ...] | None = None,
+        rows_from: list[str] | tuple[str, ...] | None = None,
     ) -> None:
         if backend not in BACKENDS:
             raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -192,6 +197,16 @@ class Context:
                 raise ValueError("--train-only and --no-train: pass one of them, not both")
         #: The model variants this run may train (None = all).
         self.train_only = train_only
+        #: ``(path, report)`` of the ``--rows-from`` reports (read now: a bad path fails
+        #: before any work).
+        self.rows_from = read_reports(tuple(rows_from or ()))
+        if self.rows_from and backend == "ray":
+            raise ValueError(
+                "--rows-from works with the local backend only; drop --backend ray, or run "
+                "the rows it should take from the reports' own --out folder"
+            )
+        #: Model entries of the rows taken from ``rows_from`` (run key -> report entry).
+        self.imported_models: dict[str, dict[str, Any]] = {}
         #: Model keys trained by this run outside this process (Ray workers).
         self.trained_elsewhere: set[str] = set()
         self.protocol = protocol
@@ -566,7 +581,9 @@ class Context:
         from benchmark.html import write_index
 
         report["datasets"] = [d.to_report() for d in self.datasets.values()]
-        report["models"] = [m.to_report() for m in self.models.values()]
+        report["models"] = [m.to_report() for m in self.models.values()] + [
+            m for k, m in self.imported_models.items() if k not in self.models
+        ]
         for d in self.datasets.values():
             if d.deviations:
                 self.notes.append(
@@ -595,11 +612,21 @@ class Context:
             for note in adapter.variant_adjustments(base, m.job.variant)[1]:
                 if note not in self.notes:
                     self.notes.append(f"Changed for the ablation on {m.job.train_preset}: {note}")
-        if self.train_minutes is not None and self.models:
+        imported = [m for k, m in self.imported_models.items() if k not in self.models]
+        if self.train_minutes is not None and (self.models or imported):
             done = "; ".join(
-                f"{m.job.variant} on {m.job.train_preset}: {m.steps_done} steps in "
-                f"{m.train_wall_s / 60.0:.1f} min (stopped by {m.budget_report()['stopped_by']})"
-                for m in self.models.values()
+                [
+                    f"{m.job.variant} on {m.job.train_preset}: {m.steps_done} steps in "
+                    f"{m.train_wall_s / 60.0:.1f} min (stopped by "
+                    f"{m.budget_report()['stopped_by']})"
+                    for m in self.models.values()
+                ]
+                + [
+                    f"{m.get('variant')} on {m.get('train_dataset')}: {m.get('steps_done')} "
+                    f"steps in {float(m.get('train_wall_s', 0.0)) / 60.0:.1f} min (imported "
+                    f"from {m['imported_from']['report']})"
+                    for m in imported
+                ]
             )
             self.notes.append(
                 f"Training budget: {self.train_minutes:g} min of training wall time per model "

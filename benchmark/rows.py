@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from benchmark.context import ModelRecord
 from benchmark.datasets import DatasetInfo
 from benchmark.evaluate import BASELINES, CONTROL_KEYS, EvalResult
 from benchmark.jobs import ModelJob
@@ -65,16 +64,19 @@ def row_metrics(spec: MeasuredRow) -> tuple[str, ...]:
     return tuple(spec.metrics)
 
 
-def measured_row(spec: MeasuredRow, rec: ModelRecord, test: DatasetInfo, res: EvalResult) -> Row:
-    """The report row of ``spec``: model ``rec`` scored on ``test`` (``res``), with the
-    metrics of :func:`row_metrics` and a null reason for each missing one."""
+def measured_row(
+    spec: MeasuredRow, run_key: str, train_dataset: str, test: DatasetInfo, res: EvalResult
+) -> Row:
+    """The report row of ``spec``: the model ``run_key`` (trained on ``train_dataset``)
+    scored on ``test`` (``res``), with the metrics of :func:`row_metrics` and a null reason
+    for each missing one."""
     names = row_metrics(spec)
     metrics = {m: res.metrics.get(m) for m in names}
     reasons = {m: res.null_reasons.get(m, "not_computed") for m, v in metrics.items() if v is None}
     extra: dict[str, Any] = {
         "nan_counts": {m: res.nan_counts.get(m, 0) for m in names if m in res.nan_counts},
-        "run_key": rec.key,
-        "train_dataset": rec.train_dataset.name,
+        "run_key": run_key,
+        "train_dataset": train_dataset,
         "test_dataset": test.name,
         "test_fingerprint": test.fingerprint,
         "eval_wall_s": round(res.wall_s, 3),

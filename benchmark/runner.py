@@ -32,6 +32,7 @@ from benchmark.log import log
 from benchmark.orderings import Ordering, check_orderings, orderings_summary
 from benchmark.paper_numbers import PAPER_TABLES, paper_rows
 from benchmark.report import RowStore
+from benchmark.row_import import ImportedRows
 from benchmark.rows import (
     MeasuredRow,
     chance_baseline_rows,
@@ -142,6 +143,11 @@ def run_table_protocol(
         "lpips": ctx.lpips_available(),
     }
     store = RowStore(ctx.report_dir / "rows", store_ctx)
+    # The row context goes into the report, so that a later run can take its rows
+    # (--rows-from) only where they are the numbers it would compute.
+    report["row_context"] = store.context_hash
+    imported = ImportedRows(ctx.rows_from, store.context_hash) if ctx.rows_from else None
+    taken: list[str] = []
     rows: list[dict[str, Any]] = []
     for t in tables:
         rows.extend(r for r in paper_rows(t) if keep is None or r["dataset"] in keep)
@@ -168,14 +174,28 @@ def run_table_protocol(
             continue
         state["tests"][spec.dataset] = test
         stored = store.get(rid)
+        if stored is None and imported is not None:
+            stored = imported.row(spec, ctx.model_key(spec.job)[0], test)
+            if stored is not None:
+                store.put(stored)  # a rerun with this --out keeps it
         if (
             stored is not None
             and stored.get("test_fingerprint") == test.fingerprint
             and stored.get("run_key") == ctx.model_key(spec.job)[0]
             and set(stored.get("metrics", {})) == set(row_metrics(spec))  # same columns
         ):
-            log(f"row done, skipped: {spec.table} / {spec.model} / {spec.dataset}")
-            skipped += 1
+            where = stored.get("imported_from")
+            if where is not None:
+                log(
+                    f"row taken from {where['report']}: {spec.table} / {spec.model} / {spec.dataset}"
+                )
+                taken.append(f"{spec.table} / {spec.model} / {spec.dataset} from {where['report']}")
+                entry = imported.models.get(stored["run_key"]) if imported is not None else None
+                if entry is not None:
+                    ctx.imported_models.setdefault(stored["run_key"], entry)
+            else:
+                log(f"row done, skipped: {spec.table} / {spec.model} / {spec.dataset}")
+                skipped += 1
             rows.append(stored)
             # Keep the model in the report if its run is still on disk (never retrain here).
             rec = ctx.model(spec.job, train=False)
@@ -196,7 +216,7 @@ def run_table_protocol(
             failed.append(f"{spec.table} / {spec.model} / {spec.dataset}: {why}")
             rows.append(unavailable_row(spec, why, kind="failed").to_dict())
             continue
-        row = measured_row(spec, rec, test, res).to_dict()
+        row = measured_row(spec, rec.key, rec.train_dataset.name, test, res).to_dict()
         store.put(row)
         rows.append(row)
         state["records"][(spec.job, spec.dataset)] = rec
@@ -237,6 +257,15 @@ def run_table_protocol(
             "Rows without data (metrics null, reason 'dataset_unavailable'): "
             + "; ".join(unavailable)
         )
+    if taken:
+        ctx.notes.append(
+            f"{len(taken)} measured row(s) were taken from earlier reports (--rows-from; "
+            "same row context, model key and test data; each row's imported_from says "
+            "which report and commit, its model's entry in models how many steps): "
+            + "; ".join(taken)
+        )
+    if imported is not None and imported.refused:
+        ctx.notes.append("--rows-from: " + "; ".join(imported.refused))
     if skipped:
         ctx.notes.append(
             f"{skipped} measured row(s) were finished by an earlier invocation and reused."

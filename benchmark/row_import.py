@@ -1,0 +1,161 @@
+"""Measured rows taken from earlier reports: ``benchmark run NAME --rows-from REPORT``.
+
+A table at the ``cpu`` scale takes hours per model, more than one sitting, and the
+machine that trained a model may be gone by the next one (its ``--out`` folder with it).
+What survives is small: the committed ``report.json`` files. ``--rows-from`` lets a table
+run take a measured row from such a report instead of training and scoring its model
+again, when the number would be the one this run computes:
+
+- the report was written under the same *row context* as this run (``row_context``: the
+  scale's settings, seeds, adapter and evaluation versions, step override and LPIPS
+  availability, the context of :class:`benchmark.report.RowStore`);
+- the row's model key (``run_key``: data fingerprint, model and training configs, seed,
+  training budget) and test-data fingerprint equal this run's;
+- it holds every metric this run's row shows (a row of another table scored on the same
+  model and test data serves as well: one evaluation computes all metrics).
+
+A wall-clock-budgeted model is not reproducible step for step, so a taken row keeps its
+provenance (``imported_from``: the report, when it was written, at which commit) and its
+model's entry (steps, wall time) goes into this report's ``models``. Reports written
+before ``row_context`` existed are refused, with the reason in the notes.
+
+Where this sits: :class:`benchmark.context.Context` reads the files (a bad path is a
+one-line error before any work), :func:`benchmark.runner.run_table_protocol` asks
+:meth:`ImportedRows.row` before training a row's model.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from benchmark.datasets import DatasetInfo
+from benchmark.evaluate import EvalResult
+from benchmark.rows import MeasuredRow, measured_row, row_metrics
+from benchmark.schema import REPORT_KIND
+
+__all__ = ["ImportedRows", "read_reports"]
+
+
+def read_reports(paths: list[str] | tuple[str, ...]) -> list[tuple[str, dict[str, Any]]]:
+    """``(path, report)`` of each ``--rows-from`` file (a folder means its report.json).
+
+    Raises:
+        ValueError: a file that is missing, not JSON or not a benchmark report (one line).
+    """
+    out = []
+    for raw in paths:
+        p = Path(raw)
+        if p.is_dir():
+            p = p / "report.json"
+        try:
+            report = json.loads(p.read_text())
+        except FileNotFoundError:
+            raise ValueError(
+                f"--rows-from {raw}: no such file (give a report.json or its folder, e.g. "
+                "results/cpu/segmentation-60min)"
+            ) from None
+        except (OSError, ValueError) as err:
+            raise ValueError(f"--rows-from {raw}: not a readable JSON report ({err})") from None
+        if not isinstance(report, dict) or report.get("kind") != REPORT_KIND:
+            raise ValueError(
+                f"--rows-from {raw}: not a benchmark report (its 'kind' is not {REPORT_KIND!r})"
+            )
+        out.append((str(p), report))
+    return out
+
+
+@dataclass
+class _Evaluation:
+    """The scores of one (model key, test data) pair in one earlier report."""
+
+    source: dict[str, Any]
+    n_scenes: int
+    train_dataset: str
+    metrics: dict[str, Any] = field(default_factory=dict)
+    null_reasons: dict[str, str] = field(default_factory=dict)
+    nan_counts: dict[str, int] = field(default_factory=dict)
+    eval_wall_s: float = 0.0
+    details: dict[str, Any] = field(default_factory=dict)
+
+
+class ImportedRows:
+    """The measured scores of earlier reports that a run with ``context_hash`` may take.
+
+    Args:
+        reports: ``(path, report)`` pairs from :func:`read_reports`, in priority order
+            (the first report holding a (model key, test data) pair supplies it).
+        context_hash: this run's row context (``RowStore.context_hash``).
+    """
+
+    def __init__(self, reports: list[tuple[str, dict[str, Any]]], context_hash: str) -> None:
+        self.evals: dict[tuple[str, str], _Evaluation] = {}
+        self.models: dict[str, dict[str, Any]] = {}
+        #: Why reports (or parts of them) were not used; for the report's notes.
+        self.refused: list[str] = []
+        for path, report in reports:
+            theirs = report.get("row_context")
+            if theirs != context_hash:
+                why = (
+                    "written before reports recorded their row context"
+                    if theirs is None
+                    else f"row context {theirs}, this run's {context_hash}: other scale "
+                    "settings, seeds, evaluation version, --steps or LPIPS availability"
+                )
+                self.refused.append(f"{path}: none of its rows taken ({why})")
+                continue
+            source = {
+                "report": path,
+                "created_utc": report.get("created_utc"),
+                "commit": (report.get("git") or {}).get("commit"),
+            }
+            mine: set[tuple[str, str]] = set()
+            for row in report.get("rows", []):
+                if row.get("source") != "measured" or row.get("n_scenes", 0) <= 0:
+                    continue
+                pair = (row.get("run_key"), row.get("test_fingerprint"))
+                if not all(isinstance(x, str) for x in pair):
+                    continue
+                if pair in self.evals and pair not in mine:
+                    continue  # an earlier report supplies this pair
+                ev = self.evals.setdefault(
+                    pair,
+                    _Evaluation(source, int(row["n_scenes"]), str(row.get("train_dataset", ""))),
+                )
+                mine.add(pair)
+                for m, v in row.get("metrics", {}).items():
+                    if v is not None or m not in ev.metrics:
+                        ev.metrics[m] = v
+                        if v is None:
+                            ev.null_reasons[m] = row.get("null_reasons", {}).get(m, "not_computed")
+                        else:
+                            ev.null_reasons.pop(m, None)
+                ev.nan_counts.update(row.get("nan_counts", {}))
+                ev.details.update(row.get("details", {}))
+                ev.eval_wall_s = max(ev.eval_wall_s, float(row.get("eval_wall_s", 0.0)))
+            for m in report.get("models", []):
+                key = m.get("run_key")
+                if any(k == key for k, _ in mine) and key not in self.models:
+                    self.models[key] = {**m, "reused": True, "imported_from": source}
+
+    def row(self, spec: MeasuredRow, run_key: str, test: DatasetInfo) -> dict[str, Any] | None:
+        """The row of ``spec`` from the imported scores of model ``run_key`` on ``test``
+        (with ``imported_from``), or None when no report holds that pair with every metric
+        the row shows."""
+        ev = self.evals.get((run_key, test.fingerprint))
+        names = row_metrics(spec)
+        if ev is None or any(m not in ev.metrics for m in names):
+            return None
+        res = EvalResult(
+            metrics=dict(ev.metrics),
+            null_reasons=dict(ev.null_reasons),
+            n_scenes=ev.n_scenes,
+            nan_counts=dict(ev.nan_counts),
+            wall_s=ev.eval_wall_s,
+            details=dict(ev.details),
+        )
+        row = measured_row(spec, run_key, ev.train_dataset, test, res).to_dict()
+        row["imported_from"] = dict(ev.source)
+        return row

@@ -1,0 +1,158 @@
+"""Tests of ``benchmark run NAME --rows-from REPORT``: a table built from rows measured by
+an earlier run elsewhere (another ``--out``, another machine), taken only where they are
+the numbers this run would compute.
+
+Tiny ``smoke``-scale synthetic data, 2 training steps; about 20 s in all.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from benchmark import adapter
+from benchmark.cli import main as cli_main
+from benchmark.schema import validate_report
+
+
+def _run(tmp: Path, out: str, protocol: str, *extra: str) -> int:
+    return cli_main(
+        [
+            "run",
+            protocol,
+            "--scale",
+            "smoke",
+            "--out",
+            str(tmp / out),
+            "--data",
+            str(tmp / "data"),
+            "--data-source",
+            "synthetic",
+            "--no-progress",
+            "--datasets",
+            "clevr567",
+            "--steps",
+            "2",
+            *extra,
+        ]
+    )
+
+
+def _report(tmp: Path, out: str, protocol: str) -> dict:
+    report = json.loads((tmp / out / f"{protocol}-smoke" / "report.json").read_text())
+    validate_report(report)
+    return report
+
+
+def _measured(report: dict) -> dict[str, dict]:
+    return {r["model"]: r for r in report["rows"] if r["source"] == "measured"}
+
+
+@pytest.fixture
+def first(tmp_path):
+    """A segmentation report measured in ``tmp_path/first`` (the earlier machine)."""
+    assert _run(tmp_path, "first", "segmentation") == 0
+    return _report(tmp_path, "first", "segmentation")
+
+
+def _no_training(monkeypatch):
+    def refuse(*a, **k):
+        raise AssertionError("a row taken from an earlier report must not train its model")
+
+    monkeypatch.setattr(adapter, "train", refuse)
+
+
+def test_a_row_is_taken_from_an_earlier_report_with_its_provenance(tmp_path, first, monkeypatch):
+    assert isinstance(first["row_context"], str)
+    src = tmp_path / "first" / "segmentation-smoke"
+    _no_training(monkeypatch)
+    # Another --out: no cached model, no cached evaluation, no stored row.
+    assert _run(tmp_path, "second", "segmentation", "--rows-from", str(src)) == 0
+    report = _report(tmp_path, "second", "segmentation")
+    row, was = _measured(report)["sVORF"], _measured(first)["sVORF"]
+    assert row["metrics"] == was["metrics"] and row["run_key"] == was["run_key"]
+    assert row["imported_from"] == {
+        "report": str(src / "report.json"),
+        "created_utc": first["created_utc"],
+        "commit": first["git"]["commit"],
+    }
+    (model,) = report["models"]
+    assert model["run_key"] == was["run_key"] and model["imported_from"]["report"].endswith(
+        "report.json"
+    )
+    assert model["steps_done"] == 2
+    assert any("taken from earlier reports (--rows-from" in n for n in report["notes"])
+    assert report["verdicts"] and report["verdicts"][0]["model"] == "sVORF"
+    # A rerun with the same --out keeps the taken row without --rows-from.
+    assert _run(tmp_path, "second", "segmentation") == 0
+    again = _measured(_report(tmp_path, "second", "segmentation"))["sVORF"]
+    assert again["metrics"] == was["metrics"] and again["imported_from"] == row["imported_from"]
+
+
+def test_another_tables_row_of_the_same_model_and_test_data_serves(tmp_path, first, monkeypatch):
+    # The ablation's full model is the segmentation table's model: one evaluation
+    # computes every metric, so its row comes from the segmentation report.
+    _no_training(monkeypatch)
+    src = str(tmp_path / "first" / "segmentation-smoke" / "report.json")
+    assert _run(tmp_path, "second", "ablation", "--no-train", "--rows-from", src) == 0
+    rows = _measured(_report(tmp_path, "second", "ablation"))
+    full = rows["sVORF (ours)"]
+    seg = _measured(first)["sVORF"]
+    assert full["imported_from"]["report"] == src
+    assert all(full["metrics"][m] == seg["metrics"][m] for m in full["metrics"])
+    # The other variants were trained nowhere: not taken, not trained.
+    others = [r for name, r in rows.items() if name != "sVORF (ours)"]
+    assert others and all(r["n_scenes"] == 0 and "imported_from" not in r for r in others)
+
+
+def test_a_report_of_other_settings_gives_no_rows_and_says_why(tmp_path, first, monkeypatch):
+    _no_training(monkeypatch)
+    src = str(tmp_path / "first" / "segmentation-smoke")
+    assert (
+        _run(tmp_path, "second", "segmentation", "--seed", "1", "--no-train", "--rows-from", src)
+        == 0
+    )
+    report = _report(tmp_path, "second", "segmentation")
+    row = _measured(report)["sVORF"]
+    assert row["n_scenes"] == 0 and "imported_from" not in row
+    (note,) = [n for n in report["notes"] if n.startswith("--rows-from:")]
+    assert "none of its rows taken" in note and "row context" in note
+
+
+def test_a_report_without_row_context_gives_no_rows(tmp_path, first, monkeypatch):
+    old = dict(first)
+    del old["row_context"]
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(old))
+    _no_training(monkeypatch)
+    assert _run(tmp_path, "second", "segmentation", "--no-train", "--rows-from", str(path)) == 0
+    report = _report(tmp_path, "second", "segmentation")
+    assert _measured(report)["sVORF"]["n_scenes"] == 0
+    assert any("written before reports recorded their row context" in n for n in report["notes"])
+
+
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        (None, "no such file"),
+        ("{not json", "not a readable JSON report"),
+        ('{"kind": "something else"}', "not a benchmark report"),
+    ],
+)
+def test_a_bad_rows_from_file_is_a_one_line_error_before_any_work(
+    tmp_path, capsys, content, needle
+):
+    path = tmp_path / "r.json"
+    if content is not None:
+        path.write_text(content)
+    assert _run(tmp_path, "second", "segmentation", "--rows-from", str(path)) == 2
+    err = capsys.readouterr().err
+    assert needle in err and err.count("\n") == 1 and err.startswith("benchmark: error:")
+    assert not (tmp_path / "data").exists()
+
+
+def test_rows_from_is_refused_for_protocols_without_tables(tmp_path, capsys):
+    assert cli_main(["run", "stability", "--out", str(tmp_path), "--rows-from", str(tmp_path)]) == 2
+    assert "applies to the table protocols" in capsys.readouterr().err
