@@ -156,3 +156,68 @@ def test_a_bad_rows_from_file_is_a_one_line_error_before_any_work(
 def test_rows_from_is_refused_for_protocols_without_tables(tmp_path, capsys):
     assert cli_main(["run", "stability", "--out", str(tmp_path), "--rows-from", str(tmp_path)]) == 2
     assert "applies to the table protocols" in capsys.readouterr().err
+
+
+def _report_with(rows: list[dict], context: str = "ctx", path_models: tuple = ()) -> dict:
+    return {
+        "kind": "svorf-benchmark-report",
+        "row_context": context,
+        "created_utc": "2026-11-26T00:00:00Z",
+        "git": {"commit": None},
+        "rows": rows,
+        "models": [{"run_key": k, "steps_done": s} for k, s in path_models],
+    }
+
+
+def _mrow(table: str, metrics: dict, key: str = "k1", fp: str = "fp1") -> dict:
+    return {
+        "source": "measured",
+        "table": table,
+        "n_scenes": 50,
+        "run_key": key,
+        "test_fingerprint": fp,
+        "train_dataset": "clevr567/train",
+        "metrics": metrics,
+        "null_reasons": {m: "lpips_unavailable" for m, v in metrics.items() if v is None},
+    }
+
+
+def test_imported_scores_merge_within_a_report_and_the_first_report_wins():
+    from benchmark.datasets import DatasetInfo
+    from benchmark.jobs import ModelJob
+    from benchmark.row_import import ImportedRows
+    from benchmark.rows import MeasuredRow
+
+    test = DatasetInfo(
+        "clevr567/test", "clevr567", "test", Path("x"), "fp1", 50, 4, 64, "generator", False, 0.0
+    )
+    job = ModelJob("full", "clevr567")
+    control = {"ari_shuffled": 5.0, "fg_ari_shuffled": 15.0, "fg_ari_gain": 70.0}
+    seg = _mrow("tab:seg", {"ari": 70.0, "fg_ari": 85.0, "nv_ari": 68.0, **control})
+    nvs = _mrow("tab:nvs", {"psnr": 30.0, "ssim": 0.9, "lpips": None})
+    later = _mrow("tab:seg", {"ari": 1.0, "fg_ari": 1.0, "nv_ari": 1.0, "psnr": 1.0, **control})
+    other = _report_with([seg], context="another")
+    imported = ImportedRows(
+        [
+            ("other.json", other),
+            ("a.json", _report_with([seg, nvs], path_models=(("k1", 100),))),
+            ("b.json", _report_with([later], path_models=(("k1", 7),))),
+        ],
+        "ctx",
+    )
+    (refused,) = imported.refused
+    assert refused.startswith("other.json: none of its rows taken (row context another")
+    assert imported.models["k1"]["steps_done"] == 100  # the first report's model
+    # One row that needs columns of both of a.json's rows (b.json's scores never mix in).
+    spec = MeasuredRow("tab:nvs", "sVORF", "clevr567", job, ("psnr", "lpips", "fg_ari"))
+    row = imported.row(spec, "k1", test)
+    assert row["metrics"]["psnr"] == 30.0 and row["metrics"]["fg_ari"] == 85.0
+    assert row["metrics"]["fg_ari_shuffled"] == 15.0  # the control comes with FG-ARI
+    assert row["metrics"]["lpips"] is None and row["null_reasons"]["lpips"] == "lpips_unavailable"
+    assert row["imported_from"]["report"] == "a.json"
+    # A column no report scored, another model key or other test data: nothing taken.
+    assert (
+        imported.row(MeasuredRow("tab:nvs", "sVORF", "clevr567", job, ("depth",)), "k1", test)
+        is None
+    )
+    assert imported.row(spec, "k2", test) is None
