@@ -123,6 +123,11 @@ def _rows_table(rows: list[dict[str, Any]], scale: str) -> str:
             notes.append("within tolerance" if r["within_tolerance"] else "<b>beyond tolerance</b>")
         if r.get("note"):
             notes.append(_e(r["note"]))
+        if r.get("imported_from"):
+            src_of = r["imported_from"]
+            notes.append(
+                f"taken from {_e(str(src_of.get('report')))} ({_e(str(src_of.get('created_utc')))})"
+            )
         for m, why in sorted(r["null_reasons"].items()):
             notes.append(f"{_e(metric_label(m))}: {_e(reason_text(why)[:120])}")
         out.append(
@@ -132,6 +137,14 @@ def _rows_table(rows: list[dict[str, Any]], scale: str) -> str:
         )
     out.append("</table>")
     return "".join(out)
+
+
+def _reused(model: dict[str, Any]) -> str:
+    """The models table's "reused" cell: True / False, or the report it was taken from."""
+    where = model.get("imported_from")
+    if where:
+        return f"from {_e(str(where.get('report')))}"
+    return str(model["reused"])
 
 
 def _verdicts(report: dict[str, Any]) -> str:
@@ -304,7 +317,7 @@ def render_html(report: dict[str, Any]) -> str:
             parts.append(
                 f"<tr><td class=l><code>{_e(m['run_key'])}</code></td><td class=l>{_e(m['variant'])}</td>"
                 f"<td class=l>{_e(m['train_dataset'])}</td><td>{m['seed']}</td>"
-                f"<td>{_e(str(m.get('steps_done', '')))}</td><td>{fmt_seconds(m['train_wall_s'])}</td><td class=l>{m['reused']}</td></tr>"
+                f"<td>{_e(str(m.get('steps_done', '')))}</td><td>{fmt_seconds(m['train_wall_s'])}</td><td class=l>{_reused(m)}</td></tr>"
             )
         parts.append(
             "</table><p>Full model and training configs are in <code>report.json</code>.</p>"

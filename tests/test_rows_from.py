@@ -85,6 +85,10 @@ def test_a_row_is_taken_from_an_earlier_report_with_its_provenance(tmp_path, fir
     assert model["steps_done"] == 2
     assert any("taken from earlier reports (--rows-from" in n for n in report["notes"])
     assert report["verdicts"] and report["verdicts"][0]["model"] == "sVORF"
+    page = (tmp_path / "second" / "segmentation-smoke" / "index.html").read_text()
+    # the row's notes, the models table and the report's notes name the source
+    assert page.count(f"from {src / 'report.json'}") == 3
+    assert f"taken from {src / 'report.json'}" in page
     # A rerun with the same --out keeps the taken row without --rows-from.
     assert _run(tmp_path, "second", "segmentation") == 0
     again = _measured(_report(tmp_path, "second", "segmentation"))["sVORF"]
