@@ -78,6 +78,19 @@ def _filter_datasets(
     return [s for s in measured if s.dataset in keep], keep, left_out
 
 
+def _is_current(
+    row: dict[str, Any] | None, spec: MeasuredRow, run_key: str, test_fingerprint: str
+) -> bool:
+    """Whether a stored or imported ``row`` is this run's row of ``spec``: the same model,
+    test data and columns."""
+    return (
+        row is not None
+        and row.get("test_fingerprint") == test_fingerprint
+        and row.get("run_key") == run_key
+        and set(row.get("metrics", {})) == set(row_metrics(spec))
+    )
+
+
 def planned_models(ctx: Context, measured: list[MeasuredRow]) -> list[ModelJob]:
     """The models a table protocol would train for ``measured`` under ``ctx`` (after
     ``--datasets``), each once, a model's initialising model first; reads no data.
@@ -173,17 +186,13 @@ def run_table_protocol(
             rows.append(unavailable_row(spec, str(err)).to_dict())
             continue
         state["tests"][spec.dataset] = test
+        key = ctx.model_key(spec.job)[0]
         stored = store.get(rid)
-        if stored is None and imported is not None:
-            stored = imported.row(spec, ctx.model_key(spec.job)[0], test)
+        if not _is_current(stored, spec, key, test.fingerprint) and imported is not None:
+            stored = imported.row(spec, key, test)
             if stored is not None:
                 store.put(stored)  # a rerun with this --out keeps it
-        if (
-            stored is not None
-            and stored.get("test_fingerprint") == test.fingerprint
-            and stored.get("run_key") == ctx.model_key(spec.job)[0]
-            and set(stored.get("metrics", {})) == set(row_metrics(spec))  # same columns
-        ):
+        if stored is not None and _is_current(stored, spec, key, test.fingerprint):
             where = stored.get("imported_from")
             if where is not None:
                 log(
