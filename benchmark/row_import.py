@@ -36,7 +36,7 @@ from benchmark.evaluate import EvalResult
 from benchmark.rows import MeasuredRow, measured_row, row_metrics
 from benchmark.schema import REPORT_KIND
 
-__all__ = ["ImportedRows", "read_reports"]
+__all__ = ["ImportedRows", "read_reports", "step_rate_note"]
 
 
 def read_reports(paths: list[str] | tuple[str, ...]) -> list[tuple[str, dict[str, Any]]]:
@@ -159,3 +159,37 @@ class ImportedRows:
         row = measured_row(spec, run_key, ev.train_dataset, test, res).to_dict()
         row["imported_from"] = dict(ev.source)
         return row
+
+
+def step_rate_note(models: list[dict[str, Any]], spread: float = 1.25) -> str | None:
+    """A note for a table whose models trained at step rates ``spread`` or more apart.
+
+    Under one wall-clock budget a model's steps depend on the machine and its load; a
+    table built over several sittings (rows taken with ``--rows-from``) can mix a model
+    from a machine at half the speed of another's. ``models`` are report ``models``
+    entries (``steps_done``, ``train_wall_s``, ``variant``, ``train_dataset``, and
+    ``imported_from`` where taken). None when fewer than two rates are known or they are
+    within ``spread`` of each other.
+    """
+    rates = []
+    for m in models:
+        steps, wall = m.get("steps_done"), m.get("train_wall_s")
+        if isinstance(steps, int) and isinstance(wall, (int, float)) and wall > 0 and steps > 0:
+            rates.append((steps / (wall / 60.0), m))
+    if len(rates) < 2:
+        return None
+    (lo, m_lo), (hi, m_hi) = min(rates, key=lambda r: r[0]), max(rates, key=lambda r: r[0])
+    if hi < spread * lo:
+        return None
+
+    def name(m: dict[str, Any]) -> str:
+        where = m.get("imported_from")
+        tail = f", from {where['report']}" if isinstance(where, dict) else ", this run"
+        return f"{m.get('variant')} on {m.get('train_dataset')}{tail}"
+
+    return (
+        f"The models' training speeds differ by {hi / lo:.1f}x: from {lo:.0f} steps per "
+        f"minute ({name(m_lo)}) to {hi:.0f} ({name(m_hi)}). Variants differ in the cost of "
+        "a step, and machines and their load differ between sittings, so under one budget "
+        "some models made more steps than others; compare rows by steps as well (models)."
+    )

@@ -225,3 +225,25 @@ def test_imported_scores_merge_within_a_report_and_the_first_report_wins():
         is None
     )
     assert imported.row(spec, "k2", test) is None
+
+
+def test_step_rate_note_names_the_slowest_and_fastest_models_only_past_the_spread():
+    from benchmark.row_import import step_rate_note
+
+    here = {"variant": "full", "train_dataset": "clevr567", "steps_done": 36000}
+    there = {
+        "variant": "wo_cr",
+        "train_dataset": "clevr567",
+        "steps_done": 18000,
+        "imported_from": {"report": "results/cpu/ablation-60min/report.json"},
+    }
+    note = step_rate_note([{**here, "train_wall_s": 3600.0}, {**there, "train_wall_s": 3600.0}])
+    assert note is not None and "differ by 2.0x" in note
+    assert "300 steps per minute (wo_cr on clevr567, from results/cpu/ablation-60min" in note
+    assert "to 600 (full on clevr567, this run)" in note
+    # Within the spread, or fewer than two known rates: no note.
+    close = {**there, "steps_done": 32000, "train_wall_s": 3600.0}
+    assert step_rate_note([{**here, "train_wall_s": 3600.0}, close]) is None
+    unknown = {**there, "steps_done": None, "train_wall_s": 3600.0}
+    assert step_rate_note([{**here, "train_wall_s": 3600.0}, unknown]) is None
+    assert step_rate_note([{**here, "train_wall_s": 0.0}, {**there, "train_wall_s": 60.0}]) is None
