@@ -35,6 +35,7 @@ from svorf.train_config import TrainConfig
 __all__ = [
     "CHECKPOINT_FORMAT",
     "CHECKPOINT_NAME",
+    "RENDER_PROBE_FIELDS",
     "CheckpointError",
     "RunInfo",
     "atomic_torch_save",
@@ -42,6 +43,7 @@ __all__ = [
     "init_weights_from",
     "load_run",
     "read_checkpoint",
+    "render_probe",
     "restore_checkpoint",
     "rng_state",
     "set_rng_state",
@@ -50,6 +52,11 @@ __all__ = [
 
 CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_FORMAT = "svorf-checkpoint-1"
+
+#: Scene-prior fields that ``SVORF`` reads at every render and that no sub-network keeps a
+#: copy of, so a trained model can be rendered with another value (a probe, not a model:
+#: the weights were trained under the checkpoint's value).
+RENDER_PROBE_FIELDS = ("fg_zmin", "fg_box", "bg_outside_fg")
 
 #: Fields that may differ between a checkpoint and the config that resumes it.
 _RESUMABLE_CHANGES = {"steps", "log_every", "ckpt_every", "eval_every", "eval_scenes", "device"}
@@ -324,3 +331,24 @@ def init_weights_from(model: torch.nn.Module, source: str | os.PathLike) -> dict
         "kept": len(kept),
         "kept_names": kept[:50],
     }
+
+
+def render_probe(model: SVORF, changes: dict[str, Any]) -> SVORF:
+    """Render ``model`` with other values of scene-prior fields (:data:`RENDER_PROBE_FIELDS`).
+
+    E.g. ``{"fg_zmin": 0.10}`` bars the object slots from the band 0.05-0.10 above the
+    floor at render time: how much of the segmentation's error lives there, before a
+    training run with that value is spent. The model is changed in place and returned.
+
+    Raises:
+        ValueError: a field that is not a render-time prior, or a value the config refuses
+            (one line).
+    """
+    bad = sorted(set(changes) - set(RENDER_PROBE_FIELDS))
+    if bad:
+        raise ValueError(
+            f"render probe: {', '.join(bad)} cannot change at render time (the weights depend "
+            f"on it); fields that can: {', '.join(RENDER_PROBE_FIELDS)}"
+        )
+    model.cfg = model.cfg.replace(**changes)
+    return model

@@ -379,6 +379,16 @@ def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     assert main(["diagnose", str(tmp_path), "--test", str(split)]) == 2
     err = capsys.readouterr().err.strip()
     assert "no checkpoint" in err and len(err.splitlines()) == 1
+    # A render probe: object slots barred below z = 100 leave every object to the background;
+    # written beside, not over, the plain diagnosis.
+    assert main([*argv, "--scenes", "1", "--render-set", "fg_zmin=100"]) == 0
+    probe = json.loads((tmp_path / "r" / "failures-probe.json").read_text())
+    assert probe["render_set"] == {"fg_zmin": 100} and probe["lost"]["fraction"] == 1.0
+    assert json.loads((tmp_path / "r" / "failures.json").read_text())["render_set"] == {}
+    capsys.readouterr()
+    assert main([*argv, "--render-set", "num_slots=3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "num_slots cannot change at render time" in err and len(err.splitlines()) == 1
 
 
 def test_bg_pos_freqs_limits_only_the_background_slots_bandwidth():

@@ -51,6 +51,7 @@ from torch import Tensor
 from scenefmt import atomic_write_json
 from scenefmt.cli_util import USAGE, OneLineParser, doc_summary, fail
 from svorf.ari import adjusted_rand_index
+from svorf.checkpoint import render_probe
 from svorf.config import ModelConfig
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
@@ -680,6 +681,10 @@ def main(argv: list[str] | None = None) -> int:
     dg.add_argument("--depth", action="store_true",
                     help="also break the novel-view depth error down (objects, background "
                     "inside / outside the sampled box); renders every view, slower")  # fmt: skip
+    dg.add_argument("--render-set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="render with another value of a scene prior (fg_zmin, fg_box, "
+                    "bg_outside_fg), repeatable: a probe of where the errors live, written "
+                    "to failures-probe.json")  # fmt: skip
     pl = sub.add_parser("plot", help="loss and held-out FG-ARI of runs over wall time (PNG)")
     pl.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     pl.add_argument("--out", required=True, help="PNG path")
@@ -704,11 +709,17 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(a.threads)
     if a.cmd == "diagnose":
         model, info = load_run(Path(a.run))
+        probe = dict(_parse_set(x, "--render-set") for x in a.render_set)
+        try:
+            render_probe(model, probe)
+        except ValueError as err:
+            return fail(_PROG, f"diagnose --render-set: {err}")
         test = MultiViewDataset(a.test, image_size=model.cfg.image_size, max_scenes=a.scenes)
-        res = {"step": info.step, **failure_breakdown(model, test)}
+        res = {"step": info.step, "render_set": probe, **failure_breakdown(model, test)}
         if a.depth:
             res["depth"] = depth_breakdown(model, test)
-        atomic_write_json(Path(a.run) / "failures.json", res)
+        name = "failures-probe.json" if probe else "failures.json"
+        atomic_write_json(Path(a.run) / name, res)
         if a.grid:
             res["grid"] = str(save_segmentation_grid(model, test, a.grid, a.grid_scenes))
         print(json.dumps(res, indent=2))
@@ -737,10 +748,10 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _parse_set(item: str) -> tuple[str, Any]:
+def _parse_set(item: str, flag: str = "--model-set") -> tuple[str, Any]:
     """ "field=value" -> (field, JSON value or the raw string)."""
     if "=" not in item:
-        raise SystemExit(fail(_PROG, f"--model-set expects FIELD=VALUE, got {item!r}", USAGE))
+        raise SystemExit(fail(_PROG, f"{flag} expects FIELD=VALUE, got {item!r}", USAGE))
     key, raw = item.split("=", 1)
     try:
         return key.strip(), json.loads(raw)
