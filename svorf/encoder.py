@@ -61,6 +61,7 @@ class ImageEncoder(nn.Module):
         blocks: BasicBlocks in conv2, conv3, conv4 (ResNet34: (3, 4, 6)).
         feat_dim: output channels (paper: 512).
         norm: "batch" | "group" | "none".
+        up_kernel: kernel side of the up-sampling convs (paper: 3; 1 is a cheaper head).
 
     Input ``images`` [B, 3, H, W] with values in [0, 1] (H, W multiples of 8); they are
     mapped to [-1, 1] here (with PyTorch-style [0, 1] inputs and default biases the features
@@ -73,6 +74,7 @@ class ImageEncoder(nn.Module):
         blocks: tuple[int, ...] = (3, 4, 6),
         feat_dim: int = 512,
         norm: str = "batch",
+        up_kernel: int = 3,
     ) -> None:
         super().__init__()
         w = width
@@ -83,9 +85,12 @@ class ImageEncoder(nn.Module):
         self.conv2 = self._stage(w, w, blocks[0], 1, norm)
         self.conv3 = self._stage(w, 2 * w, blocks[1], 2, norm)
         self.conv4 = self._stage(2 * w, 4 * w, blocks[2], 2, norm)
-        self.up1 = nn.Conv2d(4 * w, feat_dim, 3, 1, 1)
-        self.up2 = nn.Conv2d(feat_dim + 2 * w, feat_dim, 3, 1, 1)
-        self.up3 = nn.Conv2d(feat_dim + w, feat_dim, 3, 1, 1)
+        if up_kernel not in (1, 3):
+            raise ValueError(f"ImageEncoder: up_kernel must be 1 or 3, got {up_kernel!r}")
+        k, pad = up_kernel, up_kernel // 2
+        self.up1 = nn.Conv2d(4 * w, feat_dim, k, 1, pad)
+        self.up2 = nn.Conv2d(feat_dim + 2 * w, feat_dim, k, 1, pad)
+        self.up3 = nn.Conv2d(feat_dim + w, feat_dim, k, 1, pad)
         self.out_dim = feat_dim
         self.reset_parameters()
 

@@ -200,7 +200,9 @@ class SVORF(nn.Module):
         if not isinstance(cfg, ModelConfig):
             raise TypeError(f"SVORF: cfg must be a ModelConfig, got {type(cfg).__name__}")
         self.cfg = cfg
-        self.encoder = ImageEncoder(cfg.enc_width, cfg.enc_blocks, cfg.feat_dim, cfg.enc_norm)
+        self.encoder = ImageEncoder(
+            cfg.enc_width, cfg.enc_blocks, cfg.feat_dim, cfg.enc_norm, cfg.enc_up_kernel or 3
+        )
         self.slot_module = build_slot_module(cfg)
         self.fields = build_fields(cfg)
         self.composer: SlotGuidedComposer | None = None

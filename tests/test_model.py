@@ -4,6 +4,7 @@ gradients, a short training run, editing (svorf.config/encoder/decoder/field/com
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -101,6 +102,27 @@ def test_encoder_maps_inputs_and_init():
     # image dependence: two images give clearly different features
     rel = (out[0] - out[1]).norm() / out.norm()
     assert rel > 0.05
+
+
+def test_encoder_up_kernel_one_is_a_cheaper_head_of_the_same_shape():
+    x = make_images(2, 32)
+    heavy = ImageEncoder(8, (1, 1, 1), 16, "group", up_kernel=3)
+    light = ImageEncoder(8, (1, 1, 1), 16, "group", up_kernel=1)
+    assert light(x).shape == heavy(x).shape == (2, 16, 16, 16)
+    for name in ("up1", "up2", "up3"):
+        assert getattr(light, name).weight.shape[-2:] == (1, 1)
+        assert getattr(heavy, name).weight.numel() == 9 * getattr(light, name).weight.numel()
+    with pytest.raises(ValueError, match="up_kernel"):
+        ImageEncoder(8, (1, 1, 1), 16, "group", up_kernel=5)
+    # the config field: off by default and then not in the config dict (earlier runs' keys stay)
+    base = model_config("cpu")
+    assert base.enc_up_kernel is None and "enc_up_kernel" not in base.to_dict()
+    cfg = dataclasses.replace(base, enc_up_kernel=1)
+    assert cfg.to_dict()["enc_up_kernel"] == 1
+    assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+    assert SVORF(cfg).encoder.up3.weight.shape[-2:] == (1, 1)
+    with pytest.raises(ValueError, match="enc_up_kernel"):
+        dataclasses.replace(base, enc_up_kernel=2)
 
 
 # ----------------------------------------------------------------------------- fields
