@@ -50,9 +50,10 @@ class ModelConfig:
     feat_dim: int = 512
     """Channels of the up-sampled feature map (appendix table "upsample layers"): 512."""
     enc_up_kernel: int | None = None
-    """Kernel side of the three up-sampling convs: None = 3 (the paper's 3x3), or 1. At
-    64x64 input the last 3x3 up-sampling conv is most of the encoder's work; 1x1 convs cut
-    it about ninefold (a recipe lever for steps per minute, not the paper)."""
+    """Kernel side of the three up-sampling convs: None = the paper's 3x3 (3 is stored as
+    None), or 1. At 64x64 input the last 3x3 up-sampling conv is most of the encoder's
+    work; 1x1 convs cut it about ninefold (a recipe lever for steps per minute, not the
+    paper)."""
 
     # ---- slot decoder (paper 3.2 and appendix "Transformer-based module") ----
     num_slots: int = 8
@@ -341,6 +342,8 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "enc_blocks", tuple(int(b) for b in self.enc_blocks))
+        if self.enc_up_kernel == 3:  # the paper's 3x3: one spelling, so one config key
+            object.__setattr__(self, "enc_up_kernel", None)
         if self.bg_chroma_fade is not None:  # JSON gives a list
             if len(self.bg_chroma_fade) != 2:
                 raise ValueError(

@@ -121,6 +121,7 @@ def test_encoder_up_kernel_one_is_a_cheaper_head_of_the_same_shape():
     assert cfg.to_dict()["enc_up_kernel"] == 1
     assert ModelConfig.from_dict(cfg.to_dict()) == cfg
     assert SVORF(cfg).encoder.up3.weight.shape[-2:] == (1, 1)
+    assert dataclasses.replace(base, enc_up_kernel=3) == base  # the paper's 3x3: same key
     with pytest.raises(ValueError, match="enc_up_kernel"):
         dataclasses.replace(base, enc_up_kernel=2)
 
