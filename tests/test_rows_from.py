@@ -240,7 +240,7 @@ def test_step_rate_note_names_the_slowest_and_fastest_models_only_past_the_sprea
     note = step_rate_note([{**here, "train_wall_s": 3600.0}, {**there, "train_wall_s": 3600.0}])
     assert note is not None and "differ by 2.0x" in note
     assert "300 steps per minute (wo_cr on clevr567, from results/cpu/ablation-60min" in note
-    assert "to 600 (full on clevr567, this run)" in note
+    assert "to 600 (full on clevr567, trained into this --out)" in note
     # Within the spread, or fewer than two known rates: no note.
     close = {**there, "steps_done": 32000, "train_wall_s": 3600.0}
     assert step_rate_note([{**here, "train_wall_s": 3600.0}, close]) is None
