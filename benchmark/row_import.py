@@ -184,8 +184,9 @@ def step_rate_note(models: list[dict[str, Any]], spread: float = 1.25) -> str | 
 
     def name(m: dict[str, Any]) -> str:
         where = m.get("imported_from")
-        tail = (f", from {where['report']}" if isinstance(where, dict)
-                else ", trained into this --out")
+        tail = (
+            f", from {where['report']}" if isinstance(where, dict) else ", trained into this --out"
+        )
         return f"{m.get('variant')} on {m.get('train_dataset')}{tail}"
 
     return (
