@@ -290,6 +290,17 @@ class ModelConfig:
     comp_temperature: float = 1.0
     """Temperature T of the slot-guided composition: m = softmax_k(logits / T). T < 1
     sharpens the soft masks (more decomposition pressure from the first steps). 1.0 = paper."""
+    fg_mass: tuple[float, float, float] | None = None
+    """A price on what the object slots render, ``(lambda, p0, p1)``: the loss gains
+    ``w * mean over rays of acc * (1 - P_bg)`` (the rendered weight the foreground slots
+    take, from the per-pixel slot distribution), with ``w`` 0 until the run's progress
+    reaches ``p0``, ``lambda`` from ``p1`` on, linear in between (progress as for
+    ``bg_chroma_fade``). Matter an object slot holds where it changes no pixel's colour (a
+    floor-coloured halo beside its object, which claims a rim of floor pixels in the
+    masks) then costs something, while an object whose colour differs from the ground by
+    more than about sqrt(lambda) per channel is still cheaper to keep. The current weight is
+    a model buffer (``fg_mass_weight``), saved in checkpoints. None = off (paper; a lever,
+    docs/notes/cpu_recipe.md)."""
 
     slot_locality_narrow: tuple[float, float, float] | None = None
     """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
@@ -358,6 +369,12 @@ class ModelConfig:
                 )
             narrow = tuple(float(v) for v in self.slot_locality_narrow)
             object.__setattr__(self, "slot_locality_narrow", narrow)
+        if self.fg_mass is not None:  # JSON gives a list
+            if len(self.fg_mass) != 3:
+                raise ValueError(
+                    f"ModelConfig.fg_mass must be (lambda, p0, p1), got {self.fg_mass}"
+                )
+            object.__setattr__(self, "fg_mass", tuple(float(v) for v in self.fg_mass))
         if self.box_z is not None:  # JSON gives a list
             if len(self.box_z) != 2:
                 raise ValueError(f"ModelConfig.box_z must be (floor, ceiling), got {self.box_z}")
@@ -488,6 +505,13 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.comp_temperature must be > 0, got {self.comp_temperature}"
             )
+        if self.fg_mass is not None:
+            lam, p0, p1 = self.fg_mass
+            if not (lam >= 0 and 0.0 <= p0 <= p1 <= 1.0):
+                raise ValueError(
+                    "ModelConfig.fg_mass must be (lambda, p0, p1) with lambda >= 0 and "
+                    f"0 <= p0 <= p1 <= 1 (fractions of the run), got {self.fg_mass}"
+                )
         if self.slot_locality is not None:
             if not self.slot_locality > 0:
                 raise ValueError(
@@ -560,6 +584,8 @@ class ModelConfig:
             d["bg_chroma_fade"] = list(self.bg_chroma_fade)
         if self.slot_locality_narrow is not None:
             d["slot_locality_narrow"] = list(self.slot_locality_narrow)
+        if self.fg_mass is not None:
+            d["fg_mass"] = list(self.fg_mass)
         for name in _OMITTED_WHEN_NONE:  # off: not written, so keys of earlier runs stay valid
             if d[name] is None:
                 del d[name]
@@ -605,6 +631,7 @@ _OMITTED_WHEN_NONE = (
     "slot_locality_narrow",
     "clip_floor_z",
     "enc_up_kernel",
+    "fg_mass",
 )
 _OMITTED_WHEN_FALSE = ("bg_achromatic", "clip_floor_front")
 

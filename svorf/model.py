@@ -216,6 +216,8 @@ class SVORF(nn.Module):
             self.register_buffer("bg_chroma", torch.ones(()))
         if cfg.slot_locality_narrow is not None:  # the slot-locality radius now
             self.register_buffer("locality_radius", torch.tensor(float(cfg.slot_locality)))
+        if cfg.fg_mass is not None:  # the price on the object slots' rendered weight now
+            self.register_buffer("fg_mass_weight", torch.zeros(()))
 
     # ------------------------------------------------------------------ encoding
     def encode(self, images: Tensor, return_attn: bool = False) -> Tensor | tuple[Tensor, Tensor]:
@@ -528,8 +530,9 @@ class SVORF(nn.Module):
     def set_progress(self, progress: float) -> None:
         """Tell the model how far its training run is (a fraction in [0, 1], as for the
         learning-rate schedule); sets what depends on it (``bg_chroma_fade``'s ``bg_chroma``
-        buffer, ``slot_locality_narrow``'s ``locality_radius``). The training loop calls it
-        before every step; a no-op without such fields."""
+        buffer, ``slot_locality_narrow``'s ``locality_radius``, ``fg_mass``'s
+        ``fg_mass_weight``). The training loop calls it before every step; a no-op without
+        such fields."""
         fade = self.cfg.bg_chroma_fade
         if fade is not None:
             self.bg_chroma.fill_(1.0 - _ramp(progress, *fade))
@@ -537,6 +540,9 @@ class SVORF(nn.Module):
         if narrow is not None:
             r0, (r1, p0, p1) = float(self.cfg.slot_locality), narrow
             self.locality_radius.fill_(r0 + (r1 - r0) * _ramp(progress, p0, p1))
+        if self.cfg.fg_mass is not None:
+            lam, p0, p1 = self.cfg.fg_mass
+            self.fg_mass_weight.fill_(lam * _ramp(progress, p0, p1))
 
     def query_context(
         self,
@@ -722,7 +728,7 @@ class SVORF(nn.Module):
             target_rgb: [B, R, 3] in [0, 1].
         Returns:
             total (scalar, differentiable) and detached scalars: "mse", "mse_coarse",
-            "connectivity", "psnr", "total".
+            "connectivity", "psnr", "total" (and "fg_mass" with ``ModelConfig.fg_mass``).
         """
         if target_rgb.shape != out.rgb.shape:
             raise ValueError(
@@ -738,6 +744,16 @@ class SVORF(nn.Module):
             total = total + cfg.coarse_loss_weight * mse_c
         if cfg.connectivity:
             total = total + cfg.connect_lambda * out.connectivity
+        fg_mass = None
+        if cfg.fg_mass is not None:
+            if out.slot_probs is None:
+                raise ValueError(
+                    "SVORF.loss: ModelConfig.fg_mass needs the slot distribution; render with "
+                    "need_aux=True"
+                )
+            # acc * (1 - P_bg): the rendered weight the object slots take (the last is the bg).
+            fg_mass = (out.acc * (1.0 - out.slot_probs[..., -1])).mean()
+            total = total + self.fg_mass_weight * fg_mass
         stats = {
             "mse": mse.detach(),
             "mse_coarse": mse_c.detach(),
@@ -745,6 +761,8 @@ class SVORF(nn.Module):
             "psnr": -10.0 * torch.log10(mse.detach().clamp_min(1e-10)),
             "total": total.detach(),
         }
+        if fg_mass is not None:
+            stats["fg_mass"] = fg_mass.detach()
         return total, stats
 
     @torch.no_grad()

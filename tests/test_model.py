@@ -857,3 +857,50 @@ def test_slot_locality_narrow_shrinks_the_radius_over_training(tmp_path):
             ModelConfig(slot_locality=1.0, slot_locality_narrow=bad)
     with pytest.raises(ValueError, match="slot_locality_narrow"):
         ModelConfig(slot_locality_narrow=(0.5, 0.2, 0.6))
+
+
+def test_fg_mass_prices_what_the_object_slots_render(tmp_path):
+    """fg_mass=(lambda, p0, p1): the loss gains w * mean(acc * (1 - P_bg)) with w ramped from
+    0 (before p0) to lambda (from p1 on); the weight is a buffer a checkpoint carries; a
+    gradient step on the price alone lowers the object slots' rendered weight; the default
+    key is unchanged and bad values are refused."""
+    assert "fg_mass" not in ModelConfig().to_dict()
+    o, d = make_rays(2, 32)
+    model = smoke(fg_mass=(0.5, 0.2, 0.6))
+    assert ModelConfig.from_dict(model.cfg.to_dict()).fg_mass == (0.5, 0.2, 0.6)
+    plain = smoke()
+    plain.load_state_dict({k: v for k, v in model.state_dict().items() if k != "fg_mass_weight"})
+    images, target = make_images(2), torch.rand(2, 32, 3)
+    torch.manual_seed(0)
+    out = model(images, o, d)
+    mass = float((out.acc * (1.0 - out.slot_probs[..., -1])).mean().detach())
+    assert 0.0 < mass < 1.0
+    base, _ = plain.loss(out, target)
+    for progress, w in ((0.0, 0.0), (0.2, 0.0), (0.4, 0.25), (0.6, 0.5), (0.9, 0.5)):
+        model.set_progress(progress)
+        assert float(model.fg_mass_weight) == pytest.approx(w)
+        total, parts = model.loss(out, target)
+        assert float(parts["fg_mass"]) == pytest.approx(mass, rel=1e-5)
+        assert float(total) == pytest.approx(float(base) + w * mass, rel=1e-5)
+    torch.save(model.state_dict(), tmp_path / "m.pt")
+    again = smoke(fg_mass=(0.5, 0.2, 0.6))
+    again.load_state_dict(torch.load(tmp_path / "m.pt"))
+    assert float(again.fg_mass_weight) == pytest.approx(0.5)
+
+    def fg_mass(m):
+        torch.manual_seed(0)
+        r = m(images, o, d)
+        return (r.acc * (1.0 - r.slot_probs[..., -1])).mean()
+
+    before = fg_mass(model)
+    opt = torch.optim.SGD(model.parameters(), lr=0.5)
+    opt.zero_grad()
+    (model.fg_mass_weight * fg_mass(model)).backward()
+    opt.step()
+    assert float(fg_mass(model)) < float(before)
+    for bad in ((-0.1, 0.2, 0.6), (0.5, 0.6, 0.2), (0.5, 0.2, 1.5), (0.5, 0.2)):
+        with pytest.raises(ValueError, match="fg_mass"):
+            ModelConfig(fg_mass=bad)
+    no_aux = model.render_rays(model.encode(images), o, d, need_aux=False)
+    with pytest.raises(ValueError, match="need_aux"):
+        model.loss(no_aux, target)
