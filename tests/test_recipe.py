@@ -175,6 +175,12 @@ def test_train_eval_writes_metrics_and_grid(split, tmp_path):
     out = make_eval_fn(None, 1)(model, ds)
     assert 0 < out["psnr_input"] < 100
     save_segmentation_grid(model, ds, tmp_path / "g.png", 1)
+    # a fine-tune probe: the second run starts from the first one's weights
+    train_eval(
+        split, split, tmp_path / "ft", 0.0, mcfg, tcfg, grid_scenes=1, init_from=tmp_path / "r"
+    )
+    init = json.loads((tmp_path / "ft" / "config.json").read_text())["init_from"]
+    assert init["step"] == 1 and init["kept"] == 0 and init["loaded"] > 0
 
 
 def test_bg_outside_fg_keeps_the_background_slot_out_of_the_object_region():

@@ -547,17 +547,19 @@ def train_eval(
     final_scenes: int | None = None,
     train_scenes: int | None = None,
     progress: bool = False,
+    init_from: str | Path | None = None,
 ) -> dict[str, Any]:
     """Train for ``minutes`` of training wall time (evaluations excluded), evaluating the
     held-out split every ``train_cfg.eval_every`` steps (eval.jsonl), then write
     ``grid.png`` and ``final_eval.json``. ``resume`` continues an interrupted run (the
     budget counts the time already trained). ``final_scenes``: test scenes of the final
-    evaluation (None = every scene of ``test_dir``)."""
+    evaluation (None = every scene of ``test_dir``). ``init_from``: a run folder or
+    checkpoint whose matching tensors start the run (``svorf.train.train``)."""
     out = Path(out_dir)
     eval_fn = make_eval_fn(seg_metrics, train_cfg.eval_scenes)
     summary = train(data_dir, out, model_cfg, train_cfg, resume=resume, eval_fn=eval_fn,
                     eval_data=test_dir, progress=progress, max_wall_s=minutes * 60.0,
-                    max_scenes=train_scenes)  # fmt: skip
+                    max_scenes=train_scenes, init_from=init_from)  # fmt: skip
     model, info = load_run(out)
     test = MultiViewDataset(test_dir, image_size=model_cfg.image_size, max_scenes=final_scenes)
     with torch.no_grad():
@@ -638,6 +640,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--minutes", type=float, required=True, help="training wall-time budget")
     t.add_argument("--preset", default="clevr567", choices=sorted(PRESETS), help="training preset")
     t.add_argument("--resume", action="store_true", help="continue the run in --out")
+    t.add_argument("--init-from", default=None, metavar="RUN",
+                   help="start from this run's weights (a fine-tune probe; tensors that match)")  # fmt: skip
     t.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     t.add_argument("--eval-every", type=int, default=150, help="held-out eval every N steps")
     t.add_argument("--eval-scenes", type=int, default=8, help="scenes of each held-out eval")
@@ -743,7 +747,7 @@ def main(argv: list[str] | None = None) -> int:
     res = train_eval(a.data, a.test, a.out, a.minutes, mcfg, tcfg,
                      seg_metrics=None, resume=a.resume,
                      grid_scenes=a.grid_scenes, final_scenes=a.final_scenes,
-                     train_scenes=a.train_scenes)  # fmt: skip
+                     train_scenes=a.train_scenes, init_from=a.init_from)  # fmt: skip
     print(json.dumps({"final": res["final"], "grid": res["grid"]}, indent=2))
     return 0
 
