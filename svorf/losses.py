@@ -102,3 +102,20 @@ def connectivity_loss(
         return per_slot.mean()
     m = slot_mask.to(per_slot.dtype)
     return (per_slot * m).sum() / m.sum().clamp_min(1.0)
+
+
+def object_mass(acc: Tensor, slot_probs: Tensor | None) -> Tensor:
+    """Mean over rays of ``acc * (1 - P_bg)``: the rendered weight the object slots take
+    (the last slot is the background). ``ModelConfig.fg_mass`` puts a price on it.
+
+    Args:
+        acc: [B, R] accumulated opacity; slot_probs: [B, R, K] per-pixel slot distribution.
+    Raises:
+        ValueError: ``slot_probs`` is None (rendered with ``need_aux=False``).
+    """
+    if slot_probs is None:
+        raise ValueError(
+            "object_mass (ModelConfig.fg_mass) needs the slot distribution; render with "
+            "need_aux=True"
+        )
+    return (acc * (1.0 - slot_probs[..., -1])).mean()

@@ -49,7 +49,7 @@ from .config import ModelConfig, bf16_autocast_on
 from .decoder import build_slot_module
 from .encoder import ImageEncoder
 from .field import CondParams, FieldParams, build_fields, positional_encoding
-from .losses import connectivity_loss
+from .losses import connectivity_loss, object_mass
 from .march import FieldQuery, QueryContext, RayMarcher
 from .render import clip_rays_to_box
 
@@ -744,15 +744,8 @@ class SVORF(nn.Module):
             total = total + cfg.coarse_loss_weight * mse_c
         if cfg.connectivity:
             total = total + cfg.connect_lambda * out.connectivity
-        fg_mass = None
-        if cfg.fg_mass is not None:
-            if out.slot_probs is None:
-                raise ValueError(
-                    "SVORF.loss: ModelConfig.fg_mass needs the slot distribution; render with "
-                    "need_aux=True"
-                )
-            # acc * (1 - P_bg): the rendered weight the object slots take (the last is the bg).
-            fg_mass = (out.acc * (1.0 - out.slot_probs[..., -1])).mean()
+        fg_mass = None if cfg.fg_mass is None else object_mass(out.acc, out.slot_probs)
+        if fg_mass is not None:
             total = total + self.fg_mass_weight * fg_mass
         stats = {
             "mse": mse.detach(),
