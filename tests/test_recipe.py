@@ -64,6 +64,10 @@ def test_paper_scale_has_the_levers_off():
     kept = recipe_configs(levers={**off, "slot_locality": 0.8})[0]
     assert kept.slot_locality == 0.8 and kept.slot_locality_narrow == (0.6, 0.3, 0.8)
     assert recipe_configs(warmup=5)[1].warmup == 5  # train overrides win over the levers
+    # A model field the recipe does not name is a lever too: it reaches the ModelConfig,
+    # not the TrainConfig (which would refuse it).
+    mf, tf = recipe_configs(levers={"fg_mass": (0.001, 0.5, 0.8), "lr": 2e-4})
+    assert mf.fg_mass == (0.001, 0.5, 0.8) and tf.lr == 2e-4 and mr.fg_mass is None
 
 
 def test_invalid_values_are_rejected():

@@ -110,8 +110,8 @@ def recipe_configs(
 ) -> tuple[ModelConfig, TrainConfig]:
     """(model, train) configs of the cpu recipe: cpu scale + :data:`RECIPE_LEVERS`.
 
-    ``levers`` replaces entries of :data:`RECIPE_LEVERS` (model levers: fg_zmin, fg_box,
-    comp_temperature; everything else is a TrainConfig field); ``train_overrides`` are
+    ``levers`` replaces or adds entries of :data:`RECIPE_LEVERS` (a ModelConfig field goes
+    to the model, anything else to the TrainConfig); ``train_overrides`` are
     further TrainConfig fields (steps, lr, batch_scenes, ...). With no levers this equals
     ``svorf.train.run_configs("cpu", preset)`` for the CLEVR-567 family.
     """
