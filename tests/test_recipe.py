@@ -343,6 +343,41 @@ def test_ari_repairs_score_bleed_lost_and_the_one_pixel_rim():
         ari_repairs(pred[:2], gt, 3)
 
 
+def test_rim_geometry_tells_an_offset_from_a_dilation():
+    import doctest
+
+    import benchmark.tools.rim as rim_mod
+    from benchmark.tools.rim import rim_geometry, summarize_rim
+
+    assert doctest.testmod(rim_mod).failed == 0
+    gt = torch.zeros(10, 10, dtype=torch.long)
+    gt[2:5, 2:5] = 1  # a 3x3 object
+    gt[7:9, 7:9] = 2  # a 2x2 object, lost to the background below
+    # an offset: object 1 predicted one pixel lower (slot 0; slot 3 is the background)
+    shifted = torch.full_like(gt, 3)
+    shifted[3:6, 2:5] = 0
+    r = summarize_rim([rim_geometry(shifted, gt, bg_slot=3)])
+    assert r["objects"] == 1  # object 2 has no foreground pixels: no shape to compare
+    assert r["centroid_shift_px"] == pytest.approx({"x": 0.0, "y": 1.0})
+    assert r["area_ratio_median"] == pytest.approx(1.0)
+    assert r["claimed_by_side"]["below"] == pytest.approx(3 / 5)  # object 2's 2 not claimed
+    assert r["claimed_by_side"]["above"] == r["claimed_by_side"]["left"] == 0.0
+    # a dilation: both objects grown by one pixel on every side, no offset
+    grown = torch.full_like(gt, 3)
+    grown[1:6, 1:6] = 0
+    grown[6:10, 6:10] = 1
+    views = [rim_geometry(grown, gt, bg_slot=3), rim_geometry(grown, gt, bg_slot=3)]
+    r = summarize_rim(views)
+    assert r["objects"] == 4
+    assert r["centroid_shift_px"]["x"] == pytest.approx(0.0, abs=0.3)
+    assert r["centroid_shift_px"]["y"] == pytest.approx(0.0, abs=0.3)
+    assert r["area_ratio_median"] > 2.5  # 25 / 9 and (image edge) 9 / 4
+    assert all(v == pytest.approx(1.0) for v in r["claimed_by_side"].values())
+    assert math.isnan(summarize_rim([])["area_ratio_median"])
+    with pytest.raises(ValueError, match="same"):
+        rim_geometry(gt[:2], gt, 3)
+
+
 def test_depth_breakdown_splits_background_at_the_sampled_box(split):
     from benchmark.tools.recipe import depth_breakdown
 

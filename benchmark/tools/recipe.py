@@ -48,6 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from benchmark.tools.rim import rim_geometry, summarize_rim
 from scenefmt import atomic_write_json
 from scenefmt.cli_util import USAGE, OneLineParser, doc_summary, fail
 from svorf.ari import adjusted_rand_index
@@ -457,7 +458,8 @@ def failure_breakdown(
     Returns:
         :func:`summarize_failures` of all objects, plus ``rgb_abs_err`` per kind,
         ``fg_ari_repairs`` and ``ari_repairs`` (the means over scenes of
-        :func:`fg_ari_repairs` and :func:`ari_repairs`) and
+        :func:`fg_ari_repairs` and :func:`ari_repairs`), ``rim`` (the rim's shape,
+        :func:`benchmark.tools.rim.summarize_rim`: an offset or a dilation) and
         ``n_scenes``.
     """
     n = len(ds) if n_scenes is None else min(int(n_scenes), len(ds))
@@ -465,6 +467,7 @@ def failure_breakdown(
     rows: list[dict[str, Any]] = []
     repairs: list[dict[str, float]] = []
     ari_rows: list[dict[str, float]] = []
+    rims: list[dict[str, Any]] = []
     for i in range(n):
         sv = ds[i]
         if sv.instances is None:
@@ -474,6 +477,7 @@ def failure_breakdown(
         err = (rgb - sv.images[input_view].permute(1, 2, 0)).abs().mean(-1)
         repairs.append(fg_ari_repairs(labels, gt, bg))
         ari_rows.append(ari_repairs(labels, gt, bg))
+        rims.append(rim_geometry(labels, gt, bg))
         for r in object_failures(labels, gt, bg):
             r["err"] = float(err[gt == r["id"]].mean())
             rows.append(r)
@@ -492,6 +496,7 @@ def failure_breakdown(
         for k in ("ari", "bleed_repaired", "lost_repaired", "bleed_fraction",
                   "bleed_within_1px", "bleed_within_2px", "rim_ceiling")
     }  # fmt: skip
+    out["rim"] = summarize_rim(rims)
     out["n_scenes"] = n
     return out
 
