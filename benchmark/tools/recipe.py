@@ -48,7 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from benchmark.tools.rim import rim_geometry, summarize_rim
+from benchmark.tools.rim import dilate, rim_geometry, summarize_rim
 from scenefmt import atomic_write_json
 from scenefmt.cli_util import USAGE, OneLineParser, doc_summary, fail
 from svorf.ari import adjusted_rand_index
@@ -319,12 +319,6 @@ def fg_ari_repairs(pred: Tensor, gt: Tensor, bg_slot: int) -> dict[str, float]:
     }  # fmt: skip
 
 
-def _dilate(mask: Tensor, radius: int) -> Tensor:
-    """Bool [H, W] ``mask`` grown by ``radius`` pixels (8-connected, i.e. a square)."""
-    m = mask.float()[None, None]
-    return torch.nn.functional.max_pool2d(m, 2 * radius + 1, 1, radius)[0, 0] > 0
-
-
 def ari_repairs(pred: Tensor, gt: Tensor, bg_slot: int) -> dict[str, float]:
     """ARI (background included) of one view, with one kind of error repaired (diagnosis only).
 
@@ -363,8 +357,8 @@ def ari_repairs(pred: Tensor, gt: Tensor, bg_slot: int) -> dict[str, float]:
         "bleed_repaired": adjusted_rand_index(fixed_bleed, g),
         "lost_repaired": adjusted_rand_index(fixed_lost, g),
         "bleed_fraction": n_bleed / n_bg if n_bg else math.nan,
-        "bleed_within_1px": int((bleed & _dilate(obj, 1)).sum()) / n_bleed if n_bleed else math.nan,
-        "bleed_within_2px": int((bleed & _dilate(obj, 2)).sum()) / n_bleed if n_bleed else math.nan,
+        "bleed_within_1px": int((bleed & dilate(obj, 1)).sum()) / n_bleed if n_bleed else math.nan,
+        "bleed_within_2px": int((bleed & dilate(obj, 2)).sum()) / n_bleed if n_bleed else math.nan,
         "rim_ceiling": adjusted_rand_index(rim, g),
     }
 

@@ -38,6 +38,12 @@ def _neighbour(mask: Tensor, dy: int, dx: int) -> Tensor:
     return out
 
 
+def dilate(mask: Tensor, radius: int) -> Tensor:
+    """Bool [H, W] ``mask`` grown by ``radius`` pixels (8-connected, i.e. a square)."""
+    m = mask.float()[None, None]
+    return torch.nn.functional.max_pool2d(m, 2 * radius + 1, 1, radius)[0, 0] > 0
+
+
 def rim_geometry(pred: Tensor, gt: Tensor, bg_slot: int) -> dict[str, Any]:
     """Where one view's predicted objects lie against the ground truth.
 
@@ -69,7 +75,6 @@ def rim_geometry(pred: Tensor, gt: Tensor, bg_slot: int) -> dict[str, Any]:
         torch.arange(g.shape[1], dtype=torch.float64),
         indexing="ij",
     )
-    near = torch.nn.functional.max_pool2d
     shifts = []
     for oid in g.unique().tolist():
         if oid == 0:
@@ -79,8 +84,7 @@ def rim_geometry(pred: Tensor, gt: Tensor, bg_slot: int) -> dict[str, Any]:
         if 2 * fg.numel() < int(o.sum()):
             continue  # mostly lost to the background: no shape to compare
         dom = int(torch.bincount(fg).argmax())
-        within = near(o.double()[None, None], 5, 1, 2)[0, 0] > 0
-        po = (p == dom) & within
+        po = (p == dom) & dilate(o, 2)
         dx = float(xs[po].mean() - xs[o].mean())
         dy = float(ys[po].mean() - ys[o].mean())
         shifts.append((dx, dy, int(o.sum()), int(po.sum())))
