@@ -56,7 +56,9 @@ CHECKPOINT_FORMAT = "svorf-checkpoint-1"
 #: Scene-prior fields that ``SVORF`` reads at every render and that no sub-network keeps a
 #: copy of, so a trained model can be rendered with another value (a probe, not a model:
 #: the weights were trained under the checkpoint's value).
-RENDER_PROBE_FIELDS = ("fg_zmin", "fg_box", "bg_outside_fg")
+#: Render-time fields of :func:`render_probe`: the scene priors, and the samples per ray
+#: (the quadrature: no weight depends on it).
+RENDER_PROBE_FIELDS = ("fg_zmin", "fg_box", "bg_outside_fg", "n_coarse", "n_fine")
 
 #: Fields that may differ between a checkpoint and the config that resumes it.
 _RESUMABLE_CHANGES = {"steps", "log_every", "ckpt_every", "eval_every", "eval_scenes", "device"}
@@ -334,11 +336,13 @@ def init_weights_from(model: torch.nn.Module, source: str | os.PathLike) -> dict
 
 
 def render_probe(model: SVORF, changes: dict[str, Any]) -> SVORF:
-    """Render ``model`` with other values of scene-prior fields (:data:`RENDER_PROBE_FIELDS`).
+    """Render ``model`` with other values of scene-prior or sampling fields
+    (:data:`RENDER_PROBE_FIELDS`).
 
     E.g. ``{"fg_zmin": 0.10}`` bars the object slots from the band 0.05-0.10 above the
     floor at render time: how much of the segmentation's error lives there, before a
-    training run with that value is spent. The model is changed in place and returned.
+    training run with that value is spent; ``{"n_fine": 64}`` renders with more samples
+    per ray (is an error the quadrature's?). The model is changed in place and returned.
 
     Raises:
         ValueError: a field that is not a render-time prior, or a value the config refuses

@@ -430,6 +430,10 @@ def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     probe = json.loads((tmp_path / "r" / "failures-probe.json").read_text())
     assert probe["render_set"] == {"fg_zmin": 100} and probe["lost"]["fraction"] == 1.0
     assert json.loads((tmp_path / "r" / "failures.json").read_text())["render_set"] == {}
+    # More samples per ray: a quadrature probe (no weight depends on the sample counts).
+    assert main([*argv, "--scenes", "1", "--render-set", "n_fine=24"]) == 0
+    probe = json.loads((tmp_path / "r" / "failures-probe.json").read_text())
+    assert probe["render_set"] == {"n_fine": 24} and probe["objects"] > 0
     capsys.readouterr()
     assert main([*argv, "--render-set", "num_slots=3"]) == 2
     err = capsys.readouterr().err.strip()

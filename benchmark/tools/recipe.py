@@ -686,8 +686,9 @@ def main(argv: list[str] | None = None) -> int:
                     "inside / outside the sampled box); renders every view, slower")  # fmt: skip
     dg.add_argument("--render-set", action="append", default=[], metavar="FIELD=VALUE",
                     help="render with another value of a scene prior (fg_zmin, fg_box, "
-                    "bg_outside_fg), repeatable: a probe of where the errors live, written "
-                    "to failures-probe.json")  # fmt: skip
+                    "bg_outside_fg) or of the samples per ray (n_coarse, n_fine), "
+                    "repeatable: a probe of where the errors live, written to "
+                    "failures-probe.json")  # fmt: skip
     pl = sub.add_parser("plot", help="loss and held-out FG-ARI of runs over wall time (PNG)")
     pl.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     pl.add_argument("--out", required=True, help="PNG path")
