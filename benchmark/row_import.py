@@ -102,7 +102,8 @@ class ImportedRows:
                     "written before reports recorded their row context"
                     if theirs is None
                     else f"row context {theirs}, this run's {context_hash}: other scale "
-                    "settings, seeds, evaluation version, --steps or LPIPS availability"
+                    "settings, seeds, evaluation version, dataset fingerprint scheme, --steps "
+                    "or LPIPS availability"
                 )
                 self.refused.append(f"{path}: none of its rows taken ({why})")
                 continue

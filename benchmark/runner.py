@@ -154,6 +154,9 @@ def run_table_protocol(
         "eval": EVAL_VERSION,
         "train_steps": ctx.train_steps,
         "lpips": ctx.lpips_available(),
+        # Dataset fingerprints (in every row's keys) round numbers since 2026-11-27, so
+        # that splits generated on different CPUs match; earlier reports used raw bytes.
+        "fingerprint": "rounded-1e-9",
     }
     store = RowStore(ctx.report_dir / "rows", store_ctx)
     # The row context goes into the report, so that a later run can take its rows

@@ -18,6 +18,7 @@ int (square views, the generator) or ``[h, w]`` (``svorf.synthetic``); use
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -287,12 +288,59 @@ class Manifest:
         )
 
 
+#: Decimal places a number keeps in :func:`dataset_fingerprint`. A record's floats are
+#: computed from the scene's seed, but numpy's vectorised ``exp``/``log``/... differ in the
+#: last bit between CPUs (AVX2 against AVX-512 code paths), so the same scene written on two
+#: machines can differ at about 1e-16 relative (and a computed zero may be 1e-17); 1e-9
+#: world units is far above that and far below any difference between two scenes.
+FINGERPRINT_DECIMALS = 9
+
+
+def _number(x: float) -> str:
+    """``x`` rounded to FINGERPRINT_DECIMALS places, as text (-0 written as 0)."""
+    return format(round(x, FINGERPRINT_DECIMALS) + 0.0, ".15g")
+
+
+def _canonical(value: Any) -> Any:
+    """``value`` (parsed JSON) with every float as the text of :func:`_number`."""
+    if isinstance(value, float):
+        return _number(value)
+    if isinstance(value, dict):
+        return {k: _canonical(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_canonical(v) for v in value]
+    return value
+
+
+def _canonical_bytes(path: Path) -> bytes:
+    """The bytes of a record as the fingerprint sees them: JSON parsed and rewritten in
+    canonical form (sorted keys, floats rounded); a text file's numbers rounded the same
+    way (uORF ``_RT.txt``); anything unparsable as it is."""
+    raw = path.read_bytes()
+    if path.suffix == ".json":
+        try:
+            obj = json.loads(raw)
+        except ValueError:
+            return raw
+        return json.dumps(_canonical(obj), sort_keys=True, separators=(",", ":")).encode()
+    words = []
+    for word in raw.decode("utf-8", "replace").split():
+        try:
+            words.append(_number(float(word)))
+        except ValueError:
+            words.append(word)
+    return " ".join(words).encode()
+
+
 def dataset_fingerprint(root: str | os.PathLike) -> str:
     """SHA-256 over ``manifest.json`` and every ``sc*.json`` of a split (hex string).
 
     The scene records hold every random draw and camera, so two folders with the same
-    fingerprint hold the same scenes (render noise aside). For uORF-layout folders (no
-    JSON) the hash runs over the sorted ``_RT.txt`` names and contents.
+    fingerprint hold the same scenes (render noise aside). Numbers enter rounded to
+    :data:`FINGERPRINT_DECIMALS` decimal places and JSON in canonical form, so the same
+    split generated on two machines (whose floating-point libraries may differ in the last
+    bit) has one fingerprint. For uORF-layout folders (no JSON) the hash runs over the
+    sorted ``_RT.txt`` names and their numbers.
     """
     root = Path(root)
     h = hashlib.sha256()
@@ -302,5 +350,5 @@ def dataset_fingerprint(root: str | os.PathLike) -> str:
         files = sorted(root.glob("*_RT.txt"))
     for p in files:
         h.update(p.name.encode() + b"\0")
-        h.update(p.read_bytes() + b"\0")
+        h.update(_canonical_bytes(p) + b"\0")
     return h.hexdigest()

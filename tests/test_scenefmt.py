@@ -189,6 +189,52 @@ def test_records_read_back_exactly_what_every_writer_wrote(tmp_path):
     )
 
 
+def test_fingerprint_ignores_last_bit_float_noise_but_not_a_changed_scene(tmp_path):
+    """The same split written on two CPUs (numpy's vectorised exp/log differ in the last
+    bit between AVX2 and AVX-512) has one fingerprint; a changed number, name or key
+    changes it. Also for a uORF-layout folder (_RT.txt only)."""
+    import json
+    import shutil
+
+    import numpy as np
+
+    from generators.testing import write_raycast_split
+    from scenefmt import dataset_fingerprint
+
+    root = write_raycast_split(tmp_path / "a", n=2, resolution=16)
+    base = dataset_fingerprint(root)
+
+    def rewrite(src, dst, fn):
+        shutil.copytree(src, dst)
+        for p in sorted(dst.glob("sc*.json")):
+            p.write_text(json.dumps(fn(json.loads(p.read_text())), indent=1))
+        return dst
+
+    def walk(v, fn):
+        if isinstance(v, float):
+            return fn(v)
+        if isinstance(v, dict):
+            return {k: walk(x, fn) for k, x in v.items()}
+        return [walk(x, fn) for x in v] if isinstance(v, list) else v
+
+    ulp = rewrite(root, tmp_path / "ulp", lambda d: walk(d, lambda x: float(np.nextafter(x, 9e9))))
+    assert dataset_fingerprint(ulp) == base  # 1 ulp on every float, another layout
+    moved = rewrite(root, tmp_path / "moved", lambda d: {**d, "views": walk(
+        d["views"], lambda x: x * (1 + 1e-7))})  # fmt: skip
+    assert dataset_fingerprint(moved) != base
+    renamed = rewrite(root, tmp_path / "renamed", lambda d: {**d, "preset": "other"})
+    assert dataset_fingerprint(renamed) != base
+
+    uorf = tmp_path / "uorf"
+    uorf.mkdir()
+    (uorf / "00000_sc0000_az00_RT.txt").write_text("0.1 0.2 0.3 1.0\n")
+    fp = dataset_fingerprint(uorf)
+    (uorf / "00000_sc0000_az00_RT.txt").write_text(f"{np.nextafter(0.1, 1)} 0.2 0.3 1\n")
+    assert dataset_fingerprint(uorf) == fp
+    (uorf / "00000_sc0000_az00_RT.txt").write_text("0.1 0.2 0.31 1.0\n")
+    assert dataset_fingerprint(uorf) != fp
+
+
 def test_records_read_old_files_and_name_what_is_wrong():
     from scenefmt import Manifest, SceneRecord
 
