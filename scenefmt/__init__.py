@@ -68,6 +68,7 @@ from scenefmt.records import (
     SceneRecord,
     ViewRecord,
     dataset_fingerprint,
+    legacy_fingerprint,
 )
 
 __all__ = [
@@ -93,6 +94,7 @@ __all__ = [
     "default_file_mode",
     "instances_from_uorf_mask",
     "is_scene_complete",
+    "legacy_fingerprint",
     "manip_mask",
     "missing_file",
     "mkstemp_beside",

@@ -34,6 +34,7 @@ __all__ = [
     "SceneRecord",
     "ViewRecord",
     "dataset_fingerprint",
+    "legacy_fingerprint",
 ]
 
 #: ``format`` of a scene record and of a generator's manifest.
@@ -289,10 +290,11 @@ class Manifest:
 
 
 #: Decimal places a number keeps in :func:`dataset_fingerprint`. A record's floats are
-#: computed from the scene's seed, but numpy's vectorised ``exp``/``log``/... differ in the
-#: last bit between CPUs (AVX2 against AVX-512 code paths), so the same scene written on two
-#: machines can differ at about 1e-16 relative (and a computed zero may be 1e-17); 1e-9
-#: world units is far above that and far below any difference between two scenes.
+#: computed from the scene's seed, but the BLAS kernels numpy picks for the CPU (OpenBLAS's
+#: Haswell kernels on an AVX2 machine, SkylakeX on an AVX-512 one) round differently, so
+#: the same scene's camera matrices written on two machines differ by up to ~2e-16 (and a
+#: computed zero may be 1e-17); 1e-9 world units is far above that and far below any
+#: difference between two scenes.
 FINGERPRINT_DECIMALS = 9
 
 
@@ -342,7 +344,16 @@ def dataset_fingerprint(root: str | os.PathLike) -> str:
     bit) has one fingerprint. For uORF-layout folders (no JSON) the hash runs over the
     sorted ``_RT.txt`` names and their numbers.
     """
-    root = Path(root)
+    return _fingerprint(Path(root), _canonical_bytes)
+
+
+def legacy_fingerprint(root: str | os.PathLike) -> str:
+    """The fingerprint as written before 2026-11-27 (raw bytes, no rounding): lets a
+    checkpoint written then be resumed on the split it was trained on."""
+    return _fingerprint(Path(root), Path.read_bytes)
+
+
+def _fingerprint(root: Path, content: Any) -> str:
     h = hashlib.sha256()
     files = [root / "manifest.json"] if (root / "manifest.json").is_file() else []
     files += sorted(root.glob("sc[0-9][0-9][0-9][0-9].json"))
@@ -350,5 +361,5 @@ def dataset_fingerprint(root: str | os.PathLike) -> str:
         files = sorted(root.glob("*_RT.txt"))
     for p in files:
         h.update(p.name.encode() + b"\0")
-        h.update(_canonical_bytes(p) + b"\0")
+        h.update(content(p) + b"\0")
     return h.hexdigest()

@@ -26,7 +26,7 @@ from typing import Any
 
 import torch
 
-from scenefmt import default_file_mode
+from scenefmt import default_file_mode, legacy_fingerprint
 from svorf.config import ModelConfig
 from svorf.model import SVORF
 from svorf.ray_sampling import ErrorMap
@@ -208,7 +208,8 @@ def check_resumable(
     """Refuse to resume the checkpoint ``ckpt`` (read from ``path``) with other configs
     or other data: the model config must be equal, the train config equal but for the
     bookkeeping fields (steps, logging, checkpoint and eval cadence, device), and the
-    training data's ``fingerprint`` the checkpoint's.
+    training data's ``fingerprint`` the checkpoint's (or, for a checkpoint written before
+    fingerprints rounded their numbers, the data's :func:`scenefmt.legacy_fingerprint`).
 
     Raises:
         CheckpointError: one line naming the fields that differ, or the data mismatch.
@@ -226,7 +227,7 @@ def check_resumable(
     if diff:
         raise CheckpointError(f"{path}: resume with a different train config (fields {diff})")
     fp = ckpt.get("dataset", {}).get("fingerprint")
-    if fp != fingerprint:
+    if fp != fingerprint and fp != legacy_fingerprint(data_dir):  # written before 2026-11-27
         raise CheckpointError(
             f"{path}: the data in {data_dir} differs from the run's training data "
             f"(fingerprint {str(fp)[:12]} vs {fingerprint[:12]})"

@@ -190,9 +190,9 @@ def test_records_read_back_exactly_what_every_writer_wrote(tmp_path):
 
 
 def test_fingerprint_ignores_last_bit_float_noise_but_not_a_changed_scene(tmp_path):
-    """The same split written on two CPUs (numpy's vectorised exp/log differ in the last
-    bit between AVX2 and AVX-512) has one fingerprint; a changed number, name or key
-    changes it. Also for a uORF-layout folder (_RT.txt only)."""
+    """The same split written on two CPUs (whose BLAS kernels round camera matrices
+    differently in the last bit) has one fingerprint; a changed number or name changes
+    it. Also for a uORF-layout folder (_RT.txt only)."""
     import json
     import shutil
 

@@ -164,6 +164,16 @@ def test_resume_a_checkpoint_saved_before_a_config_field_existed(split, tmp_path
     ckpt = torch.load(run / "checkpoint.pt", weights_only=True)
     for key in ("slot_centre", "centre_temperature", "dec_value_pos"):
         ckpt["model_config"].pop(key)
+    # ... and the data's fingerprint as written then (raw bytes, before numbers were
+    # rounded): the same data, so it resumes; another fingerprint is other data.
+    from scenefmt import dataset_fingerprint, legacy_fingerprint
+
+    assert legacy_fingerprint(split) != dataset_fingerprint(split)
+    torch.save({**ckpt, "dataset": {**ckpt["dataset"], "fingerprint": "0" * 64}},
+               run / "checkpoint.pt")  # fmt: skip
+    with pytest.raises(CheckpointError, match="differs from the run's training data"):
+        train(split, run, MCFG, tcfg(steps=3), resume=True, progress=False)
+    ckpt["dataset"]["fingerprint"] = legacy_fingerprint(split)
     torch.save(ckpt, run / "checkpoint.pt")
     train(split, run, MCFG, tcfg(steps=3), resume=True, progress=False)
     assert [r["step"] for r in _log(run)][-1] == 3
