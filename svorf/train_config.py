@@ -70,8 +70,8 @@ class TrainConfig:
     warmup: int = 1000
     """Linear learning-rate warm-up steps (lr * step / warmup). Paper: 1,000."""
     lr_decay: str = "none"
-    """Learning rate after warm-up: "none" (constant, paper) or "cosine" (cpu recipe): a
-    half cosine from ``lr`` down to ``lr * lr_final_ratio`` over the run. The run's
+    """Learning rate after warm-up: "none" (constant; the paper and the cpu recipe) or
+    "cosine": a half cosine from ``lr`` down to ``lr * lr_final_ratio`` over the run. The run's
     progress is the larger of ``step / steps`` and, in a time-budgeted run
     (``train(max_wall_s=...)``), its training wall time over the budget, so a budgeted
     run reaches the low rate when its time runs out whatever its speed."""
