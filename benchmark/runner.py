@@ -156,7 +156,7 @@ def run_table_protocol(
         "lpips": ctx.lpips_available(),
         # Dataset fingerprints (in every row's keys) round numbers since 2026-11-27, so
         # that splits generated on different CPUs match; earlier reports used raw bytes.
-        "fingerprint": "rounded-1e-9",
+        "fingerprint": "rounded-1e-6",
     }
     store = RowStore(ctx.report_dir / "rows", store_ctx)
     # The row context goes into the report, so that a later run can take its rows
