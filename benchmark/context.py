@@ -41,7 +41,7 @@ from benchmark.jobs import ModelJob, evaluate_run, read_eval, train_run, write_e
 from benchmark.log import log
 from benchmark.metrics import lpips_weight_candidates
 from benchmark.report import new_report, stable_hash, write_report
-from benchmark.row_import import read_reports, step_rate_note
+from benchmark.row_import import read_reports, recipe_rate_note, step_rate_note
 from benchmark.scales import ScaleSettings, get_scale
 from scenefmt.cli_util import did_you_mean
 
@@ -634,9 +634,9 @@ class Context:
                 f"{done}. Steps done depend on the machine's speed and load, so a budgeted "
                 "run is not reproducible step for step."
             )
-            rate_note = step_rate_note(report["models"])
-            if rate_note is not None:
-                self.notes.append(rate_note)
+            for note in (step_rate_note(report["models"]), recipe_rate_note(report["models"])):
+                if note is not None:
+                    self.notes.append(note)
         if self.data_source == "synthetic":
             self.notes.append(
                 "Datasets are svorf.synthetic analytic sphere scenes (a stand-in for the "

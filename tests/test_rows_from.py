@@ -247,3 +247,26 @@ def test_step_rate_note_names_the_slowest_and_fastest_models_only_past_the_sprea
     unknown = {**there, "steps_done": None, "train_wall_s": 3600.0}
     assert step_rate_note([{**here, "train_wall_s": 3600.0}, unknown]) is None
     assert step_rate_note([{**here, "train_wall_s": 0.0}, {**there, "train_wall_s": 60.0}]) is None
+
+
+def test_recipe_rate_note_flags_a_full_recipe_model_trained_on_a_slow_machine():
+    from benchmark.row_import import RECIPE_STEPS_PER_MINUTE, recipe_rate_note
+
+    lo = RECIPE_STEPS_PER_MINUTE[0]
+    slow = {
+        "variant": "full",
+        "train_dataset": "clevr567/train",
+        "config_source": "svorf.train.run_configs (cpu recipe)",
+        "train_budget": {"minutes": 60.0},
+        "steps_done": 18751,
+        "train_wall_s": 3600.0,
+    }
+    note = recipe_rate_note([slow])
+    assert note is not None and "clevr567/train at 313 steps per minute" in note
+    assert f"60 minutes there are about {60 * lo / 312.5:.0f} here" in note
+    # At the measured rates, another variant, no recipe, or no wall-clock budget: no note.
+    assert recipe_rate_note([{**slow, "steps_done": int(0.9 * lo * 60)}]) is None
+    assert recipe_rate_note([{**slow, "variant": "slot_mixer"}]) is None
+    assert recipe_rate_note([{**slow, "config_source": "svorf.train.run_configs"}]) is None
+    assert recipe_rate_note([{**slow, "train_budget": {"minutes": None}}]) is None
+    assert recipe_rate_note([{**slow, "train_budget": None}]) is None
