@@ -53,11 +53,10 @@ __all__ = [
 CHECKPOINT_NAME = "checkpoint.pt"
 CHECKPOINT_FORMAT = "svorf-checkpoint-1"
 
-#: Scene-prior fields that ``SVORF`` reads at every render and that no sub-network keeps a
-#: copy of, so a trained model can be rendered with another value (a probe, not a model:
-#: the weights were trained under the checkpoint's value).
-#: Render-time fields of :func:`render_probe`: the scene priors, and the samples per ray
-#: (the quadrature: no weight depends on it).
+#: Fields that ``SVORF`` reads at every render and that no sub-network keeps a copy of, so
+#: a trained model can be rendered with another value (a probe, not a model: the weights
+#: were trained under the checkpoint's value): the scene priors, and the samples per ray
+#: (the quadrature).
 RENDER_PROBE_FIELDS = ("fg_zmin", "fg_box", "bg_outside_fg", "n_coarse", "n_fine")
 
 #: Fields that may differ between a checkpoint and the config that resumes it.
