@@ -1,13 +1,13 @@
 """Training loop of sVORF: :func:`train`, its steps, and the run folder's logs.
 
 Where this sits: ``svorf.data`` (dataset + ray sampler) -> **here** (Adam with linear
-warm-up, paper appendix A) -> checkpoints in a run folder (``svorf.checkpoint``) ->
-``load_run`` / ``predict_scene`` (``svorf.checkpoint``, ``svorf.predict``) for ``svorf
-render`` and the benchmark adapter. The configs (``TrainConfig``, ``run_configs``,
-``config_key``) are in ``svorf.train_config``, what the scales, presets and the cpu recipe
-set in ``svorf.registry``. This module re-exports the public names of ``train_config``,
-``checkpoint`` and ``predict`` (their old home): callers keep importing them from
-``svorf.train``.
+warm-up, paper appendix A; the optimizer in ``svorf.optim``) -> checkpoints in a run folder
+(``svorf.checkpoint``) -> ``load_run`` / ``predict_scene`` (``svorf.checkpoint``,
+``svorf.predict``) for ``svorf render`` and the benchmark adapter. The configs
+(``TrainConfig``, ``run_configs``, ``config_key``) are in ``svorf.train_config``, what the
+scales, presets and the cpu recipe set in ``svorf.registry``. This module re-exports the
+public names of ``train_config``, ``checkpoint`` and ``predict`` (their old home): callers
+keep importing them from ``svorf.train``.
 
 A run folder holds::
 
@@ -77,6 +77,7 @@ from svorf.checkpoint import (
 from svorf.config import ModelConfig, bf16_autocast_on
 from svorf.data import MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
+from svorf.optim import grad_norm, make_optimizer
 from svorf.predict import ScenePrediction, default_eval, predict_scene
 from svorf.ray_sampling import ErrorMap
 from svorf.train_config import (
@@ -421,7 +422,7 @@ def _setup(
     model: torch.nn.Module = SVORF(model_cfg).to(device)
     if dctx is not None:
         model = distributed.prepare_model(model, device, dctx)
-    opt = torch.optim.Adam(model.parameters(), lr=lr_at(train_cfg, 0), betas=train_cfg.betas)
+    opt = make_optimizer(model.parameters(), lr_at(train_cfg, 0), train_cfg.betas, device)
     out.mkdir(parents=True, exist_ok=True)
     return _Run(
         out=out,
@@ -605,7 +606,7 @@ def _train_step(
     if run.dctx is None:
         opt.zero_grad(set_to_none=True)
         loss.backward()
-    gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf"))
+    gnorm = grad_norm(model.parameters())
     _guard_grad(run, done, loss, gnorm)
     opt.step()
     run.last_loss = float(loss.detach())

@@ -20,6 +20,10 @@ Usage::
 ``--recipe`` applies the cpu recipe's model levers (``benchmark.tools.recipe.RECIPE_LEVERS``)
 to every variant, so the knobs are timed on the model the recipe trains.
 
+``--optimizer`` times, instead of the variants, a whole training step (forward, backward,
+gradient norm, Adam) with the training loop's fused Adam (``svorf.optim``) against
+per-tensor Adam, and how far one update of each lands apart (:func:`optimizer_run`).
+
 Variants: ``original`` (every knob off and the composer in its paper form
 ``SlotGuidedComposer.logits_reference``: the model before any speed work, the reference of every
 ratio), ``baseline`` (every knob off: the paper's method, with the exact folded composer),
@@ -62,6 +66,7 @@ from scenefmt.cli_util import DefaultsFormatter, doc_summary
 from svorf.compose import masked_softmax
 from svorf.config import ModelConfig, bf16_native, model_config
 from svorf.model import SVORF
+from svorf.optim import grad_norm, make_optimizer
 from svorf.render import clip_rays_to_box, sample_stratified
 
 # Every knob off: the paper's method at the scale's sizes.
@@ -424,6 +429,86 @@ def run(
     }
 
 
+def optimizer_run(
+    scale: str = "cpu",
+    *,
+    overrides: dict[str, Any] | None = None,
+    scenes: int = 4,
+    rays: int = 256,
+    repeats: int = 7,
+    warmup: int = 2,
+    threads: int = 2,
+    log=print,
+) -> dict[str, Any]:
+    """Time a whole training step (forward, loss, backward, gradient norm, Adam) with the
+    training loop's optimizer (``svorf.optim``: fused Adam, :func:`svorf.optim.grad_norm`)
+    against the per-tensor forms it replaced (Adam without ``fused``,
+    ``clip_grad_norm_(params, inf)``), interleaved, same weights and batch; and how far one
+    update of the two forms from the same gradients lands apart (largest |difference| of a
+    parameter)."""
+    torch.set_num_threads(threads)
+    v = Variant("default", dict(overrides or {}))
+    state = build_model(scale, v, None).state_dict()
+    models = [build_model(scale, v, state) for _ in range(2)]
+    batch = make_batch(models[0].cfg, scenes, rays)
+    lr, betas = 4e-4, (0.9, 0.999)
+    opts = [
+        make_optimizer(m.parameters(), lr, betas, "cpu", fused=f)
+        for m, f in zip(models, (False, True))
+    ]
+
+    def per_tensor() -> None:
+        train_step(models[0], batch)
+        torch.nn.utils.clip_grad_norm_(models[0].parameters(), float("inf"))
+        opts[0].step()
+
+    def fused() -> None:
+        train_step(models[1], batch)
+        grad_norm(models[1].parameters())
+        opts[1].step()
+
+    # One update of each form from the same weights and gradients.
+    check = [build_model(scale, v, state) for _ in range(2)]
+    train_step(check[0], batch)
+    for p, q in zip(check[0].parameters(), check[1].parameters()):
+        q.grad = None if p.grad is None else p.grad.clone()
+    norms = [
+        float(torch.nn.utils.clip_grad_norm_(check[0].parameters(), float("inf"))),
+        float(grad_norm(check[1].parameters())),
+    ]
+    for m, f in zip(check, (False, True)):
+        make_optimizer(m.parameters(), lr, betas, "cpu", fused=f).step()
+    diff = max(
+        float((p - q).detach().abs().max())
+        for p, q in zip(check[0].parameters(), check[1].parameters())
+    )
+    times = time_interleaved(
+        [per_tensor, fused],
+        repeats=repeats,
+        warmup=warmup,
+        on_repeat=lambda r, last: log(
+            f"repeat {r + 1}/{repeats}: " + " ".join(f"{t:.3f}" for t in last)
+        ),
+    )
+    meds = [statistics.median(t) for t in times]
+    return {
+        "scale": scale,
+        "batch": {"scenes": scenes, "rays": rays},
+        "threads": threads,
+        "repeats": repeats,
+        "torch": torch.__version__,
+        "overrides": v.overrides,
+        "param_tensors": sum(1 for _ in models[0].parameters()),
+        "forms": [
+            {"name": n, "median_s": m, "steps_per_s": 1.0 / m, "times_s": t}
+            for n, m, t in zip(("per-tensor", "fused"), meds, times)
+        ],
+        "ratio": meds[0] / meds[1],
+        "grad_norms": norms,
+        "update_max_abs_diff": diff,
+    }
+
+
 def format_table(report: dict[str, Any]) -> str:
     """Plain-text table of a :func:`run` report."""
     head = (
@@ -501,6 +586,12 @@ def main(argv: list[str] | None = None) -> int:
         "slot locality, foreground box, ...) under every variant",
     )
     ap.add_argument("--no-rss", action="store_true", help="skip the per-variant RSS subprocesses")
+    ap.add_argument(
+        "--optimizer",
+        action="store_true",
+        help="instead of the variants: time a whole training step with the training loop's "
+        "fused Adam against per-tensor Adam (the scale's default model, --recipe applies)",
+    )
     ap.add_argument("--json", type=Path, default=None, help="also write the report here")
     ap.add_argument("--_rss-worker", dest="rss_worker", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -517,6 +608,27 @@ def main(argv: list[str] | None = None) -> int:
         levers = recipe_model_levers()
         for v in variants:  # a variant's own knob settings win over the recipe's
             v.overrides = {**levers, **v.overrides}
+    if a.optimizer:
+        default = next(v for v in variants if v.name == "default")
+        opt_report = optimizer_run(
+            a.scale,
+            overrides=default.overrides,
+            scenes=a.scenes,
+            rays=a.rays,
+            repeats=a.repeats,
+            warmup=a.warmup,
+            threads=a.threads,
+        )
+        a_, b_ = opt_report["forms"]
+        print(
+            f"per-tensor Adam {a_['steps_per_s']:.2f} steps/s, fused {b_['steps_per_s']:.2f} "
+            f"steps/s: {opt_report['ratio']:.3f}x; one update apart by at most "
+            f"{opt_report['update_max_abs_diff']:.2e}"
+        )
+        if a.json is not None:
+            _write_json_atomic(a.json, opt_report)
+            print(f"wrote {a.json}")
+        return 0
     if a.only:
         wanted = [s.strip() for s in a.only.split(",") if s.strip()]
         known = {v.name for v in variants}
