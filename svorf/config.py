@@ -301,6 +301,16 @@ class ModelConfig:
     more than about sqrt(lambda) per channel is still cheaper to keep. The current weight is
     a model buffer (``fg_mass_weight``), saved in checkpoints. None = off (paper; a lever,
     docs/notes/cpu_recipe.md)."""
+    fg_mass_halo: float | None = None
+    """With ``fg_mass``: the price only where the background alone explains the pixel. Each
+    ray's ``acc * (1 - P_bg)`` is weighted by ``exp(-|C_bg - C|^2 / tau^2)`` (``tau`` = this
+    value, RGB in [0, 1]; no gradient through the weight), with ``C`` the pixel's colour and
+    ``C_bg`` the colour the background slot renders on its own along the ray (the composed
+    field with the foreground region's density removed). A floor-coloured halo beside an
+    object pays in full (the floor behind it has the pixel's colour); an object pixel, whose
+    colour the floor behind does not have, pays almost nothing. Needs ``bg_outside_fg`` (the
+    regions then partition the scene, so outside the foreground region the composed field
+    is the background's). None = ``fg_mass`` prices every ray alike."""
 
     slot_locality_narrow: tuple[float, float, float] | None = None
     """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
@@ -512,6 +522,13 @@ class ModelConfig:
                     "ModelConfig.fg_mass must be (lambda, p0, p1) with lambda >= 0 and "
                     f"0 <= p0 <= p1 <= 1 (fractions of the run), got {self.fg_mass}"
                 )
+        halo = self.fg_mass_halo
+        if halo is not None and (self.fg_mass is None or not self.bg_outside_fg or not halo > 0):
+            raise ValueError(
+                "ModelConfig.fg_mass_halo (tau > 0) weights fg_mass's price: it needs fg_mass "
+                f"and bg_outside_fg=True, got fg_mass_halo={halo}, fg_mass={self.fg_mass}, "
+                f"bg_outside_fg={self.bg_outside_fg}"
+            )
         if self.slot_locality is not None:
             if not self.slot_locality > 0:
                 raise ValueError(
@@ -632,6 +649,7 @@ _OMITTED_WHEN_NONE = (
     "clip_floor_z",
     "enc_up_kernel",
     "fg_mass",
+    "fg_mass_halo",
 )
 _OMITTED_WHEN_FALSE = ("bg_achromatic", "clip_floor_front")
 

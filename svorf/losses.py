@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .render import render_weights
+from .render import render_weights, volume_render
 
 
 def _check(weights: Tensor, edges: Tensor, name: str) -> None:
@@ -104,12 +104,27 @@ def connectivity_loss(
     return (per_slot * m).sum() / m.sum().clamp_min(1.0)
 
 
-def object_mass(acc: Tensor, slot_probs: Tensor | None) -> Tensor:
+def background_colour(
+    sigma: Tensor, rgb: Tensor, m: Tensor, t: Tensor, is_bg: Tensor, last_delta: float
+) -> Tensor:
+    """Colour [B, R, 3] the background slot renders on its own: the composed field
+    ``sigma`` [B, R, N], ``rgb`` [B, R, N, 3] at samples ``t`` [B, R, N] with each point's
+    density scaled by the background's mask ``m`` [B, R, N, K] (``is_bg`` [B, K]). With
+    ``ModelConfig.bg_outside_fg`` that mask is 1 outside the foreground region and 0 inside
+    it, so this is the scene with the objects' region emptied."""
+    m_bg = (m * is_bg[:, None, None, :].to(m.dtype)).sum(dim=-1)
+    rgb_bg, _, _, _ = volume_render(sigma * m_bg, rgb, t, last_delta=last_delta)
+    return rgb_bg
+
+
+def object_mass(acc: Tensor, slot_probs: Tensor | None, gate: Tensor | None = None) -> Tensor:
     """Mean over rays of ``acc * (1 - P_bg)``: the rendered weight the object slots take
     (the last slot is the background). ``ModelConfig.fg_mass`` puts a price on it.
 
     Args:
         acc: [B, R] accumulated opacity; slot_probs: [B, R, K] per-pixel slot distribution.
+        gate: [B, R] weight of each ray's price (``ModelConfig.fg_mass_halo``, see
+            :func:`halo_gate`); None = every ray alike.
     Raises:
         ValueError: ``slot_probs`` is None (rendered with ``need_aux=False``).
     """
@@ -118,4 +133,21 @@ def object_mass(acc: Tensor, slot_probs: Tensor | None) -> Tensor:
             "object_mass (ModelConfig.fg_mass) needs the slot distribution; render with "
             "need_aux=True"
         )
-    return (acc * (1.0 - slot_probs[..., -1])).mean()
+    mass = acc * (1.0 - slot_probs[..., -1])
+    return mass.mean() if gate is None else (mass * gate).mean()
+
+
+def halo_gate(bg_rgb: Tensor | None, target: Tensor, tau: float) -> Tensor:
+    """``exp(-|bg_rgb - target|^2 / tau^2)`` per ray [B, R], without gradient: 1 where the
+    background alone renders the pixel's colour (``ModelConfig.fg_mass_halo``).
+
+    Raises:
+        ValueError: ``bg_rgb`` is None (the model rendered without it).
+    """
+    if bg_rgb is None:
+        raise ValueError(
+            "halo_gate (ModelConfig.fg_mass_halo) needs the background's own colour; render "
+            "with need_aux=True"
+        )
+    with torch.no_grad():
+        return torch.exp(-(bg_rgb.float() - target.float()).square().sum(dim=-1) / tau**2)

@@ -36,7 +36,6 @@ off by default: the exact path.
 from __future__ import annotations
 
 import contextlib
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,7 +48,8 @@ from .config import ModelConfig, bf16_autocast_on
 from .decoder import build_slot_module
 from .encoder import ImageEncoder
 from .field import CondParams, FieldParams, build_fields, positional_encoding
-from .losses import connectivity_loss, object_mass
+from .frames import azimuth_frame, centre_anchors, token_ground_points
+from .losses import background_colour, connectivity_loss, halo_gate, object_mass
 from .march import FieldQuery, QueryContext, RayMarcher
 from .render import clip_rays_to_box
 
@@ -69,6 +69,9 @@ class RenderOutput:
     coarse_rgb: [B, R, 3] coarse-pass colour (NeRF practice: also supervised, so the shared
         network learns the coarse density that drives importance sampling); equals ``rgb``
         when n_fine = 0.
+    bg_rgb: [B, R, 3] colour the background slot renders on its own
+        (:func:`~svorf.losses.background_colour`); only with ``ModelConfig.fg_mass_halo``
+        and need_aux=True, else None.
     """
 
     rgb: Tensor
@@ -77,6 +80,7 @@ class RenderOutput:
     slot_probs: Tensor | None
     connectivity: Tensor
     coarse_rgb: Tensor
+    bg_rgb: Tensor | None = None
 
 
 @dataclass
@@ -112,25 +116,6 @@ class PairCount:
 _DENSE_ABOVE = 0.85
 
 
-def azimuth_frame(cam_to_world: Tensor) -> Tensor:
-    """Rotation [B, 3, 3] from the world frame to the camera's azimuth frame.
-
-    The azimuth frame is the world frame (z up) rotated about z so that the camera centre
-    ``cam_to_world[:, :3, 3]`` lies in the x-z half-plane x >= 0 (azimuth 0): x_frame =
-    R @ x_world. A camera on the z axis (azimuth undefined) gives the identity.
-    """
-    c = cam_to_world[..., :3, 3].float()
-    phi = torch.atan2(c[..., 1], c[..., 0])  # atan2(0, 0) = 0
-    cos, sin = torch.cos(phi), torch.sin(phi)
-    zero, one = torch.zeros_like(phi), torch.ones_like(phi)
-    rows = [
-        torch.stack([cos, sin, zero], -1),
-        torch.stack([-sin, cos, zero], -1),
-        torch.stack([zero, zero, one], -1),
-    ]
-    return torch.stack(rows, -2)
-
-
 def _ramp(progress: float, p0: float, p1: float) -> float:
     """0 before ``p0``, 1 from ``p1`` on, linear in between (a schedule over the run)."""
     if progress <= p0:
@@ -138,47 +123,6 @@ def _ramp(progress: float, p0: float, p1: float) -> float:
     if progress >= p1:
         return 1.0
     return (progress - p0) / (p1 - p0)
-
-
-def centre_anchors(k: int, extent: float, height: float) -> Tensor:
-    """Fixed anchors [K, 3] of ``slot_centre="anchored"``: the K-1 foreground slots on a
-    sunflower (Fibonacci) disk of radius 0.6 ``extent`` at z = ``height`` (slot i at radius
-    0.6 e sqrt((i + 0.5) / (K - 1)), angle i x the golden angle: evenly spread, no two
-    on one spot); the last (background) slot at the origin (its centre is never used)."""
-    n = max(k - 1, 1)
-    i = torch.arange(k - 1, dtype=torch.float64)
-    r = 0.6 * extent * torch.sqrt((i + 0.5) / n)
-    theta = i * math.pi * (3.0 - math.sqrt(5.0))
-    fg = torch.stack([r * torch.cos(theta), r * torch.sin(theta), torch.full_like(r, height)], -1)
-    return torch.cat([fg, torch.zeros(1, 3, dtype=torch.float64)]).float()
-
-
-def token_ground_points(
-    cam_to_world: Tensor, h: int, w: int, focal: float, height: float, extent: float
-) -> Tensor:
-    """World points [B, h*w, 3] where the rays through the centres of an h x w token grid of
-    the input view meet the plane z = ``height`` (row-major over (y, x), as the tokens).
-
-    Pinhole camera, OpenCV axes, principal point at the image centre, focal length
-    ``focal`` x image width. x and y are clamped to [-extent, extent]; a ray that does not
-    descend to the plane is taken to meet it at the far edge of that square.
-
-    Args:
-        cam_to_world: [B, 4, 4].
-    """
-    dev = cam_to_world.device
-    u = (torch.arange(w, device=dev, dtype=torch.float32) + 0.5) / w - 0.5
-    v = (torch.arange(h, device=dev, dtype=torch.float32) + 0.5) / h - 0.5
-    vv, uu = torch.meshgrid(v, u, indexing="ij")
-    d_cam = torch.stack([uu / focal, vv / focal, torch.ones_like(uu)], -1).reshape(-1, 3)
-    rot, o = cam_to_world[:, :3, :3].float(), cam_to_world[:, :3, 3].float()
-    d = torch.einsum("bij,tj->bti", rot, d_cam)  # [B, T, 3]
-    dz = d[..., 2]
-    t = (height - o[:, None, 2]) / dz.clamp(max=-1e-6)  # rays going up: far away
-    t = torch.where(dz < -1e-6, t, torch.full_like(t, 1e4))
-    p = o[:, None] + t[..., None] * d
-    xy = p[..., :2].clamp(-extent, extent)
-    return torch.cat([xy, torch.full_like(xy[..., :1], height)], -1)
 
 
 class SVORF(nn.Module):
@@ -422,7 +366,10 @@ class SVORF(nn.Module):
             slot_probs = (num + eps * q.m.mean(dim=2)) / (acc[..., None] + eps)
             if cfg.connectivity:
                 connectivity = connectivity_loss(q.sigma_k, t, far_r, cfg.near, cfg.far, slot_mask)
-        return RenderOutput(rgb, depth, acc, slot_probs, connectivity, p.coarse_rgb)
+        bg_rgb = None
+        if need_aux and cfg.fg_mass_halo is not None:
+            bg_rgb = background_colour(q.sigma, q.rgb, q.m, t, is_bg, marcher.last_delta)
+        return RenderOutput(rgb, depth, acc, slot_probs, connectivity, p.coarse_rgb, bg_rgb)
 
     def _query(self, ctx: QueryContext, t: Tensor) -> FieldQuery:
         """Composed field at samples t [B, R, N] of every ray of ``ctx`` (the field query
@@ -744,8 +691,12 @@ class SVORF(nn.Module):
             total = total + cfg.coarse_loss_weight * mse_c
         if cfg.connectivity:
             total = total + cfg.connect_lambda * out.connectivity
-        fg_mass = None if cfg.fg_mass is None else object_mass(out.acc, out.slot_probs)
-        if fg_mass is not None:
+        fg_mass = None
+        if cfg.fg_mass is not None:
+            gate = None
+            if cfg.fg_mass_halo is not None:
+                gate = halo_gate(out.bg_rgb, target, cfg.fg_mass_halo)
+            fg_mass = object_mass(out.acc, out.slot_probs, gate)
             total = total + self.fg_mass_weight * fg_mass
         stats = {
             "mse": mse.detach(),

@@ -904,3 +904,72 @@ def test_fg_mass_prices_what_the_object_slots_render(tmp_path):
     no_aux = model.render_rays(model.encode(images), o, d, need_aux=False)
     with pytest.raises(ValueError, match="need_aux"):
         model.loss(no_aux, target)
+
+
+def test_background_colour_renders_the_scene_without_the_object_region():
+    """background_colour: the composed field with each point's density scaled by the
+    background's mask, rendered as usual: a ray through a red object point (mask 0) in front
+    of a grey floor point (mask 1) gives the floor's grey, the full render the red."""
+    from svorf.losses import background_colour
+    from svorf.render import volume_render
+
+    t = torch.tensor([[[1.0, 2.0, 3.0]]])  # [B=1, R=1, N=3]
+    sigma = torch.tensor([[[50.0, 50.0, 0.0]]])
+    rgb = torch.tensor([[[[1.0, 0.0, 0.0], [0.5, 0.5, 0.5], [0.0, 0.0, 1.0]]]])
+    m = torch.tensor([[[[1.0, 0.0], [0.0, 1.0], [0.0, 1.0]]]])  # [B, R, N, K]: slot 1 = bg
+    is_bg = torch.tensor([[False, True]])
+    full, _, _, _ = volume_render(sigma, rgb, t, last_delta=1.0)
+    torch.testing.assert_close(full[0, 0], torch.tensor([1.0, 0.0, 0.0]), atol=1e-6, rtol=0)
+    bg = background_colour(sigma, rgb, m, t, is_bg, last_delta=1.0)
+    torch.testing.assert_close(bg[0, 0], torch.tensor([0.5, 0.5, 0.5]), atol=1e-6, rtol=0)
+    # Every point the background's: the full render.
+    both = background_colour(
+        sigma, rgb, torch.ones_like(m), t, torch.ones(1, 2, dtype=torch.bool), 1.0
+    )
+    torch.testing.assert_close(both, full)
+
+
+def test_fg_mass_halo_prices_only_rays_the_background_explains():
+    """fg_mass_halo=tau: each ray's fg_mass price is weighted by exp(-|C_bg - C|^2 / tau^2)
+    (C_bg = the background's own colour, rendered with need_aux; no gradient through the
+    weight): a target equal to C_bg pays the plain price, a target far from it nothing; the
+    key is left out when off; it needs fg_mass and bg_outside_fg."""
+    assert "fg_mass_halo" not in ModelConfig().to_dict()
+    kw = {"fg_zmin": 0.0, "bg_outside_fg": True, "fg_mass": (0.5, 0.0, 0.0)}
+    model = smoke(fg_mass_halo=0.1, **kw)
+    assert ModelConfig.from_dict(model.cfg.to_dict()).fg_mass_halo == 0.1
+    plain = smoke(**kw)
+    plain.load_state_dict(model.state_dict())
+    model.set_progress(1.0)
+    plain.set_progress(1.0)
+    o, d = make_rays(2, 32)
+    images = make_images(2)
+    torch.manual_seed(0)
+    out = model(images, o, d)
+    assert out.bg_rgb is not None and out.bg_rgb.shape == (2, 32, 3)
+    assert plain(images, o, d).bg_rgb is None
+    mass = out.acc * (1.0 - out.slot_probs[..., -1])
+    _, same = model.loss(out, out.bg_rgb.detach().clamp(0, 1))
+    torch.testing.assert_close(
+        same["fg_mass"], mass.mean().detach(), atol=0.02 * float(mass.mean()), rtol=0
+    )
+    far = (1.0 - out.bg_rgb.detach()).round()  # each channel >= 0.5 away
+    _, none = model.loss(out, far)
+    assert float(none["fg_mass"]) < 1e-6 * float(mass.mean())
+    target = torch.rand(2, 32, 3)
+    gate = torch.exp(-(out.bg_rgb - target).square().sum(-1) / 0.01)
+    total, parts = model.loss(out, target)
+    torch.testing.assert_close(parts["fg_mass"], (mass * gate).mean().detach())
+    base, _ = smoke(**{**kw, "fg_mass": None}).loss(out, target)
+    assert float(total) == pytest.approx(float(base) + 0.5 * float((mass * gate).mean()), rel=1e-5)
+    from svorf.losses import halo_gate
+
+    assert out.bg_rgb.requires_grad and not halo_gate(out.bg_rgb, target, 0.1).requires_grad
+    with pytest.raises(ValueError, match="need_aux"):
+        halo_gate(None, target, 0.1)
+    with pytest.raises(ValueError, match="fg_mass_halo"):
+        ModelConfig(fg_mass_halo=0.1, fg_zmin=0.0, bg_outside_fg=True)
+    with pytest.raises(ValueError, match="fg_mass_halo"):
+        ModelConfig(fg_mass_halo=0.1, fg_mass=(0.5, 0.0, 0.0))
+    with pytest.raises(ValueError, match="fg_mass_halo"):
+        ModelConfig(fg_mass_halo=0.0, **kw)
