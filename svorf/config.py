@@ -310,7 +310,9 @@ class ModelConfig:
     object pays in full (the floor behind it has the pixel's colour); an object pixel, whose
     colour the floor behind does not have, pays almost nothing. Needs ``bg_outside_fg`` (the
     regions then partition the scene, so outside the foreground region the composed field
-    is the background's). None = ``fg_mass`` prices every ray alike."""
+    is the background's). None = ``fg_mass`` prices every ray alike (paper). A lever, not
+    in any recipe: a fine-tune probe narrowed the rim but cost FG-ARI at both seeds
+    (docs/notes/cpu_recipe.md)."""
 
     slot_locality_narrow: tuple[float, float, float] | None = None
     """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
