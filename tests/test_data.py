@@ -391,3 +391,44 @@ def test_object_contrast_rays_find_grey_objects_and_stay_label_free():
     assert on.all()  # the salient half comes from salient pixels
     with pytest.raises(ValueError, match="fraction"):
         object_contrast_rays(img, 8, g1, fraction=1.5)
+
+
+def test_object_balanced_rays_give_a_small_blob_a_large_blobs_share():
+    """A 3x3 and a 12x12 object on a uniform floor: object_heavy draws them in proportion
+    to area, object_balanced about equally; a speck under min_blob gets a smaller share."""
+    from svorf.ray_sampling import blob_weights, object_balanced_rays, object_heavy_rays
+
+    h = w = 32
+    img = torch.full((2, h, w, 3), 100, dtype=torch.uint8)
+    img[0, 2:14, 2:14] = torch.tensor([200, 30, 30], dtype=torch.uint8)  # large, view 0
+    img[1, 20:23, 20:23] = torch.tensor([30, 30, 200], dtype=torch.uint8)  # small, view 1
+    img[1, 5, 28] = 250  # a one-pixel highlight
+    wts = blob_weights(img, min_blob=4)
+    assert wts[0, 2:14, 2:14].sum().item() == pytest.approx(1.0)
+    assert wts[1, 20:23, 20:23].sum().item() == pytest.approx(1.0)
+    assert wts[1, 5, 28].item() == pytest.approx(0.25)  # 1 pixel of min_blob 4
+    assert float(wts.sum()) == pytest.approx(2.25)
+    large = torch.zeros(2, h, w, dtype=torch.bool)
+    large[0, 2:14, 2:14] = True
+    small = torch.zeros(2, h, w, dtype=torch.bool)
+    small[1, 20:23, 20:23] = True
+
+    def shares(fn, **kw):
+        g = torch.Generator().manual_seed(0)
+        idx = torch.cat([fn(img, 400, g, **kw)[:200] for _ in range(20)])  # the salient half
+        return large.reshape(-1)[idx].float().mean(), small.reshape(-1)[idx].float().mean()
+
+    big_h, small_h = shares(object_heavy_rays)
+    big_b, small_b = shares(object_balanced_rays, min_blob=4)
+    assert small_h < 0.1 and big_h > 0.85  # area-weighted: 9 px against 144 px
+    assert abs(float(big_b - small_b)) < 0.1 and small_b > 0.35  # blob-weighted
+    g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    a, b = object_balanced_rays(img, 64, g1), object_balanced_rays(img, 64, g2)
+    assert torch.equal(a, b) and a.shape == (64,) and int(a.max()) < 2 * h * w
+    flat = torch.full((1, h, w, 3), 100, dtype=torch.uint8)  # nothing salient: uniform
+    assert object_balanced_rays(flat, 16, g1).shape == (16,)
+    with pytest.raises(ValueError, match="fraction"):
+        object_balanced_rays(img, 8, g1, fraction=-0.1)
+    with pytest.raises(ValueError, match="min_blob"):
+        blob_weights(img, min_blob=0)
+    assert "object_balanced" in RAY_SAMPLING
