@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -431,4 +432,31 @@ def test_object_balanced_rays_give_a_small_blob_a_large_blobs_share():
         object_balanced_rays(img, 8, g1, fraction=-0.1)
     with pytest.raises(ValueError, match="min_blob"):
         blob_weights(img, min_blob=0)
-    assert "object_balanced" in RAY_SAMPLING
+    half = blob_weights(img, min_blob=4, power=0.5)  # a blob's weight: sqrt(area)
+    assert half[0].sum().item() == pytest.approx(12.0) and half[
+        1, 20:23
+    ].sum().item() == pytest.approx(3.0)
+    with pytest.raises(ValueError, match="power"):
+        blob_weights(img, power=1.5)
+    assert "object_balanced" in RAY_SAMPLING and "object_balanced_sqrt" in RAY_SAMPLING
+
+
+def test_raystats_scores_strategies_against_the_truth(split, tmp_path):
+    """Uniform rays land on objects about as often as objects cover the target views."""
+    from benchmark.tools.raystats import main, ray_stats
+
+    ds = MultiViewDataset(split)
+    ids = ds._ids[:, 1:]
+    coverage = float((ids > 0).float().mean())
+    r = ray_stats(ds, "uniform", rays=4000, small=1e9)  # every object counts as small
+    assert r["rays_on_objects"] == pytest.approx(coverage, abs=0.03)
+    assert r["small_objects"] > 0 and r["rays_per_small_object"] > 0
+    with pytest.raises(ValueError, match="error_driven"):
+        ray_stats(ds, "error_driven")
+    out = tmp_path / "stats.json"
+    assert (
+        main(["--data", str(split), "--strategies", "uniform,object_balanced", "--json", str(out)])
+        == 0
+    )
+    assert set(json.loads(out.read_text())["strategies"]) == {"uniform", "object_balanced"}
+    assert main(["--data", str(tmp_path / "missing")]) == 2
