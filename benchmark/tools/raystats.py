@@ -75,7 +75,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", type=int, default=120, help="first N scenes (default 120)")
     ap.add_argument("--rays", type=int, default=128, help="rays per scene (default 128)")
     ap.add_argument("--small", type=float, default=30.0, help="small: under N px a view")
-    ap.add_argument("--strategies", default="uniform,object_heavy,object_contrast,object_balanced")
+    ap.add_argument(
+        "--strategies",
+        default="uniform,object_heavy,object_contrast,object_balanced,object_balanced_sqrt",
+    )
     ap.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = ap.parse_args(argv)
     try:
