@@ -881,7 +881,7 @@ def test_fg_mass_prices_what_the_object_slots_render(tmp_path):
         assert float(model.fg_mass_weight) == pytest.approx(w)
         total, parts = model.loss(out, target)
         assert float(parts["fg_mass"]) == pytest.approx(mass, rel=1e-5)
-        assert float(total) == pytest.approx(float(base) + w * mass, rel=1e-5)
+        assert float(total.detach()) == pytest.approx(float(base.detach()) + w * mass, rel=1e-5)
     torch.save(model.state_dict(), tmp_path / "m.pt")
     again = smoke(fg_mass=(0.5, 0.2, 0.6))
     again.load_state_dict(torch.load(tmp_path / "m.pt"))
@@ -897,7 +897,7 @@ def test_fg_mass_prices_what_the_object_slots_render(tmp_path):
     opt.zero_grad()
     (model.fg_mass_weight * fg_mass(model)).backward()
     opt.step()
-    assert float(fg_mass(model)) < float(before)
+    assert float(fg_mass(model).detach()) < float(before.detach())
     for bad in ((-0.1, 0.2, 0.6), (0.5, 0.6, 0.2), (0.5, 0.2, 1.5), (0.5, 0.2)):
         with pytest.raises(ValueError, match="fg_mass"):
             ModelConfig(fg_mass=bad)
