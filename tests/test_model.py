@@ -951,7 +951,7 @@ def test_fg_mass_halo_prices_only_rays_the_background_explains():
     mass = out.acc * (1.0 - out.slot_probs[..., -1])
     _, same = model.loss(out, out.bg_rgb.detach().clamp(0, 1))
     torch.testing.assert_close(
-        same["fg_mass"], mass.mean().detach(), atol=0.02 * float(mass.mean()), rtol=0
+        same["fg_mass"], mass.mean().detach(), atol=0.02 * float(mass.mean().detach()), rtol=0
     )
     far = (1.0 - out.bg_rgb.detach()).round()  # each channel >= 0.5 away
     _, none = model.loss(out, far)
