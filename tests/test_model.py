@@ -948,7 +948,7 @@ def test_fg_mass_halo_prices_only_rays_the_background_explains():
     out = model(images, o, d)
     assert out.bg_rgb is not None and out.bg_rgb.shape == (2, 32, 3)
     assert plain(images, o, d).bg_rgb is None
-    mass = out.acc * (1.0 - out.slot_probs[..., -1])
+    mass = (out.acc * (1.0 - out.slot_probs[..., -1])).detach()
     _, same = model.loss(out, out.bg_rgb.detach().clamp(0, 1))
     torch.testing.assert_close(
         same["fg_mass"], mass.mean().detach(), atol=0.02 * float(mass.mean().detach()), rtol=0
@@ -957,11 +957,13 @@ def test_fg_mass_halo_prices_only_rays_the_background_explains():
     _, none = model.loss(out, far)
     assert float(none["fg_mass"]) < 1e-6 * float(mass.mean())
     target = torch.rand(2, 32, 3)
-    gate = torch.exp(-(out.bg_rgb - target).square().sum(-1) / 0.01)
+    gate = torch.exp(-(out.bg_rgb.detach() - target).square().sum(-1) / 0.01)
     total, parts = model.loss(out, target)
     torch.testing.assert_close(parts["fg_mass"], (mass * gate).mean().detach())
     base, _ = smoke(**{**kw, "fg_mass": None}).loss(out, target)
-    assert float(total) == pytest.approx(float(base) + 0.5 * float((mass * gate).mean()), rel=1e-5)
+    assert float(total.detach()) == pytest.approx(
+        float(base.detach()) + 0.5 * float((mass * gate).mean()), rel=1e-5
+    )
     from svorf.losses import halo_gate
 
     assert out.bg_rgb.requires_grad and not halo_gate(out.bg_rgb, target, 0.1).requires_grad
