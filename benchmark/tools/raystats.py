@@ -40,7 +40,7 @@ def ray_stats(
         raise ValueError(
             f"raystats: strategy {strategy!r} unknown or stateful; choose from {known}"
         )
-    if ds._ids is None:
+    if len(ds) and ds[0].instances is None:
         raise ValueError("raystats: the split has no instance masks; use a generated split")
     fn, gen = RAY_SAMPLING[strategy], torch.Generator().manual_seed(seed)
     views = torch.arange(1, ds.n_views)
@@ -48,8 +48,9 @@ def ray_stats(
     small_rays: list[int] = []
     large_rays: list[int] = []
     for s in range(len(ds)):
-        ids = ds._ids[s][views].reshape(-1).long()
-        hit = ids[fn(ds._rgb[s][views], rays, gen)]
+        ids = ds[s].instances[views].reshape(-1)
+        rgb = ds.images(s, views).permute(0, 2, 3, 1).mul(255.0).round().to(torch.uint8)
+        hit = ids[fn(rgb, rays, gen)]
         total += len(hit)
         on_object += int((hit > 0).sum())
         area = torch.bincount(ids, minlength=256).float() / len(views)
