@@ -378,6 +378,31 @@ def test_rim_geometry_tells_an_offset_from_a_dilation():
         rim_geometry(gt[:2], gt, 3)
 
 
+def test_split_geometry_tells_top_and_bottom_from_side_by_side():
+    from benchmark.tools.splits import split_geometry, summarize_splits
+
+    gt = torch.zeros(12, 12, dtype=torch.long)
+    gt[1:7, 1:4] = 1  # a tall object: slot 0 on top, slot 1 below (a top-and-bottom split)
+    gt[8:11, 1:7] = 2  # a wide object: slot 2 left, slot 1 right (side by side)
+    gt[1:4, 8:11] = 3  # whole in slot 2, one background pixel: not split
+    pred = torch.full_like(gt, 4)  # slot 4 = background
+    pred[1:4, 1:4], pred[4:7, 1:4] = 0, 1
+    pred[8:11, 1:5], pred[8:11, 5:7] = 2, 1
+    pred[1:4, 8:11] = 2
+    pred[1, 8] = 4
+    rows = split_geometry(pred, gt, bg_slot=4)
+    assert [r["split"] for r in rows] == [True, True, False]
+    assert rows[0]["dy"] == pytest.approx(3.0) and rows[0]["dx"] == pytest.approx(0.0)
+    assert rows[1]["dy"] == pytest.approx(0.0) and rows[1]["dx"] == pytest.approx(3.0)
+    s = summarize_splits(rows, large=10)
+    assert s == {"objects": 3, "split": 2, "split_large": 2, "top_bottom": 1, "second_below": 1}
+    # a second slot under min_share or min_pixels is not a split
+    assert not split_geometry(pred, gt, bg_slot=4, min_share=0.6)[0]["split"]
+    assert not split_geometry(pred, gt, bg_slot=4, min_pixels=10)[0]["split"]
+    with pytest.raises(ValueError, match="split_geometry"):
+        split_geometry(pred[:2], gt, 4)
+
+
 def test_depth_breakdown_splits_background_at_the_sampled_box(split):
     from benchmark.tools.recipe import depth_breakdown
 

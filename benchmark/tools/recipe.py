@@ -49,6 +49,7 @@ import torch
 from torch import Tensor
 
 from benchmark.tools.rim import dilate, rim_geometry, summarize_rim
+from benchmark.tools.splits import split_geometry, summarize_splits
 from scenefmt import atomic_write_json
 from scenefmt.cli_util import USAGE, OneLineParser, doc_summary, fail
 from svorf.ari import adjusted_rand_index
@@ -453,7 +454,8 @@ def failure_breakdown(
         :func:`summarize_failures` of all objects, plus ``rgb_abs_err`` per kind,
         ``fg_ari_repairs`` and ``ari_repairs`` (the means over scenes of
         :func:`fg_ari_repairs` and :func:`ari_repairs`), ``rim`` (the rim's shape,
-        :func:`benchmark.tools.rim.summarize_rim`: an offset or a dilation) and
+        :func:`benchmark.tools.rim.summarize_rim`: an offset or a dilation), ``splits``
+        (how split objects lie, :func:`benchmark.tools.splits.summarize_splits`) and
         ``n_scenes``.
     """
     n = len(ds) if n_scenes is None else min(int(n_scenes), len(ds))
@@ -462,6 +464,7 @@ def failure_breakdown(
     repairs: list[dict[str, float]] = []
     ari_rows: list[dict[str, float]] = []
     rims: list[dict[str, Any]] = []
+    splits: list[dict[str, Any]] = []
     for i in range(n):
         sv = ds[i]
         if sv.instances is None:
@@ -472,6 +475,7 @@ def failure_breakdown(
         repairs.append(fg_ari_repairs(labels, gt, bg))
         ari_rows.append(ari_repairs(labels, gt, bg))
         rims.append(rim_geometry(labels, gt, bg))
+        splits.extend(split_geometry(labels, gt, bg))
         for r in object_failures(labels, gt, bg):
             r["err"] = float(err[gt == r["id"]].mean())
             rows.append(r)
@@ -491,6 +495,7 @@ def failure_breakdown(
                   "bleed_within_1px", "bleed_within_2px", "rim_ceiling")
     }  # fmt: skip
     out["rim"] = summarize_rim(rims)
+    out["splits"] = summarize_splits(splits)
     out["n_scenes"] = n
     return out
 
