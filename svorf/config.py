@@ -331,6 +331,13 @@ class ModelConfig:
     explain objects that lie far apart: decomposition pressure from the first step (the
     object-centric analogue of uORF's locality box). Label-free: the centres are learned
     from the reconstruction loss alone. None = off (paper)."""
+    slot_locality_xy: bool = False
+    """``slot_locality``'s envelope measured in the floor plane only: g_k(x) = exp(-|x_xy -
+    c_k,xy|^2 / (2 r^2)), a vertical cylinder instead of a ball (z is up in every
+    ``coord_frame``). Objects stand side by side on the floor, never on one another, so
+    height says nothing about which slot a point belongs to, and a tall object's base is no
+    nearer a neighbour's centre than its top is. Aimed at large objects split top and
+    bottom between two slots (docs/notes/cpu_recipe.md). False = a ball (a lever)."""
     slot_centre: SlotCentre = "learned"
     """Where the ``slot_locality`` centres come from. "learned": c_k = e * tanh(Linear(s_k)).
     "attention": geometry instead of a learned map: each token of the feature map is cast
@@ -550,6 +557,11 @@ class ModelConfig:
                     f"got slot_locality_narrow={self.slot_locality_narrow}, "
                     f"slot_locality={self.slot_locality}"
                 )
+        if self.slot_locality_xy and self.slot_locality is None:
+            raise ValueError(
+                "ModelConfig.slot_locality_xy shapes slot_locality's envelope: set "
+                "slot_locality (a radius) too"
+            )
         if self.slot_centre != "learned" and self.slot_locality is None:
             raise ValueError(
                 f"ModelConfig.slot_centre={self.slot_centre!r} places slot_locality centres: set "
@@ -653,7 +665,7 @@ _OMITTED_WHEN_NONE = (
     "fg_mass",
     "fg_mass_halo",
 )
-_OMITTED_WHEN_FALSE = ("bg_achromatic", "clip_floor_front")
+_OMITTED_WHEN_FALSE = ("bg_achromatic", "clip_floor_front", "slot_locality_xy")
 
 
 def _check_choice(name: str, value: object, literal: object) -> None:

@@ -420,7 +420,10 @@ class SVORF(nn.Module):
 
         log_g = None  # [B, K, P] log of the slot-locality envelopes (0 for the background)
         if centres is not None:
-            d2 = (xn - centres[:, :, None, :]).square().sum(-1)  # [B, K, P]
+            diff = xn - centres[:, :, None, :]  # [B, K, P, 3]
+            if cfg.slot_locality_xy:  # a vertical cylinder: distance in the floor plane
+                diff = diff[..., :2]
+            d2 = diff.square().sum(-1)  # [B, K, P]
             r = self.locality_radius if cfg.slot_locality_narrow is not None else cfg.slot_locality
             log_g = (-0.5 / r**2) * d2.masked_fill(is_bg[:, :, None], 0.0)
 

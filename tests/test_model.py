@@ -859,6 +859,35 @@ def test_slot_locality_narrow_shrinks_the_radius_over_training(tmp_path):
         ModelConfig(slot_locality_narrow=(0.5, 0.2, 0.6))
 
 
+def test_slot_locality_xy_ignores_height(monkeypatch):
+    """slot_locality_xy=True: the envelope is a vertical cylinder, so moving the centres up
+    or down changes nothing while moving them sideways does; with a ball (the default)
+    height matters. The default key is unchanged; the field needs slot_locality."""
+    assert "slot_locality_xy" not in ModelConfig().to_dict()
+    o, d = make_rays(2, 16)
+    kw = {"num_slots": 4, "slot_centre": "anchored", "fg_box": 3.0, "slot_locality": 0.5}
+    images = make_images(2)
+    for xy in (True, False):
+        model = smoke(slot_locality_xy=xy, **kw).eval()
+        assert ModelConfig.from_dict(model.cfg.to_dict()).slot_locality_xy is xy
+        slots = model.encode(images)
+        base = model._centres(slots)
+
+        def render(shift, model=model, slots=slots, base=base):
+            monkeypatch.setattr(model, "_centres", lambda *a, **k: base + shift)
+            return model.render_rays(slots, o, d).rgb
+
+        ref = render(torch.zeros(3))
+        up, side = render(torch.tensor([0.0, 0.0, 1.0])), render(torch.tensor([1.0, 0.0, 0.0]))
+        assert not torch.allclose(ref, side, atol=1e-5)
+        if xy:
+            torch.testing.assert_close(ref, up)
+        else:
+            assert not torch.allclose(ref, up, atol=1e-5)
+    with pytest.raises(ValueError, match="slot_locality_xy"):
+        ModelConfig(slot_locality_xy=True)
+
+
 def test_fg_mass_prices_what_the_object_slots_render(tmp_path):
     """fg_mass=(lambda, p0, p1): the loss gains w * mean(acc * (1 - P_bg)) with w ramped from
     0 (before p0) to lambda (from p1 on); the weight is a buffer a checkpoint carries; a
