@@ -209,11 +209,18 @@ def variant_adjustments(base_cfg: Any, variant: str) -> tuple[dict[str, Any], li
         narrow = getattr(base_cfg, "slot_locality_narrow", None)
         if narrow is not None:  # the radius schedule goes with the radius
             changes["slot_locality_narrow"] = None
+        if getattr(base_cfg, "slot_locality_xy", False):  # and so does its shape
+            changes["slot_locality_xy"] = False
         notes.append(
             f"{variant}: Slot-Mixer composition has no per-slot density to localise, so the "
             f"base config's slot_locality={base_cfg.slot_locality} and "
             f"slot_centre={base_cfg.slot_centre!r}"
             + (f" (narrowed by slot_locality_narrow={narrow})" if narrow is not None else "")
+            + (
+                " (a cylinder, slot_locality_xy)"
+                if changes.get("slot_locality_xy") is False
+                else ""
+            )
             + " are off for this model (slot_locality=None)."
         )
     return changes, notes

@@ -139,6 +139,11 @@ _CPU_RECIPE = Recipe(
         # (docs/notes/cpu_recipe.md, 2026-11-26): FG-ARI 82.3 / 80.0 at seeds 0 / 1
         # against 82.3 / 78.0 without it (60 minutes alone); fewer merged objects.
         "slot_locality_narrow": (0.6, 0.3, 0.8),
+        # The envelope as a vertical cylinder (docs/notes/cpu_recipe.md, 2026-11-28,
+        # twenty-second session): the literal 60-minute command at seeds 1 / 0 gave FG-ARI
+        # 81.0 / 82.8 against 77.1 / 80.3 with a ball, both now "decomposes" (the ball's
+        # runs, from earlier sessions on the same machine, made 7% / 15% fewer steps).
+        "slot_locality_xy": True,
         # The far floor (docs/notes/cpu_recipe.md, 2026-11-26, seventh session): rays that
         # leave the box before the ground plane are sampled out to it. 60 minutes alone:
         # FG-ARI 85.4 / 84.0 at seeds 0 / 1 against 82.3 / 80.0, depth AbsRel 0.072 / 0.072

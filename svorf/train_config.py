@@ -226,10 +226,13 @@ def apply_recipe(
     """``(mcfg, tcfg)`` with ``recipe`` (default the cpu recipe, :data:`CPU_RECIPE`) applied,
     its entries replaced by ``levers`` (any model or train field, named by the recipe or
     not). Levers that turn ``slot_locality`` off also turn off the recipe's
-    ``slot_locality_narrow`` (a schedule of that radius) unless they set it themselves."""
+    ``slot_locality_narrow`` and ``slot_locality_xy`` (that radius's schedule and shape)
+    unless they set them themselves."""
     lv = {**recipe.fields, **(levers or {})}
-    if lv.get("slot_locality") is None and "slot_locality_narrow" not in (levers or {}):
-        lv.pop("slot_locality_narrow", None)
+    if lv.get("slot_locality") is None:
+        for name in ("slot_locality_narrow", "slot_locality_xy"):
+            if name not in (levers or {}):
+                lv.pop(name, None)
     model_names = {f.name for f in dataclasses.fields(ModelConfig)}
     model_kw = {k: lv.pop(k) for k in list(lv) if k in model_names}
     return mcfg.replace(**model_kw), tcfg.replace(**lv)

@@ -52,14 +52,16 @@ def test_slot_mixer_at_cpu_scale_says_what_it_changed():
     assert changes == {
         "slot_locality": None,
         "slot_locality_narrow": None,
+        "slot_locality_xy": False,
         "slot_centre": "learned",
     }
     assert notes and "Slot-Mixer" in notes[0] and "slot_locality_narrow" in notes[0]
+    assert "slot_locality_xy" in notes[0]
     assert adapter.model_config("cpu", "clevr567", "slot_mixer").slot_locality is None
     # ... and nothing changes where nothing conflicts.
     assert adapter.variant_adjustments(base, "wo_sa") == ({}, [])
     # Without a narrowing schedule only the radius and the centres go.
-    plain = dataclasses.replace(base, slot_locality_narrow=None)
+    plain = dataclasses.replace(base, slot_locality_narrow=None, slot_locality_xy=False)
     changes, _ = adapter.variant_adjustments(plain, "slot_mixer")
     assert changes == {"slot_locality": None, "slot_centre": "learned"}
 
