@@ -228,8 +228,8 @@ def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
     res = meta.resolution if meta is not None else None
     if isinstance(res, tuple) and min(int(r) for r in res) < image_size:
         raise _UsageError(
-            f"--scale {scale} trains at {image_size}x{image_size} but {data} holds "
-            f"{res[0]}x{res[1]} images; pass --image-size {min(int(r) for r in res)} or "
+            f"--scale {scale} trains on {image_size}x{image_size} images but {data} holds "
+            f"{res[0]}x{res[1]} ones; pass --image-size {min(int(r) for r in res)} or "
             f"regenerate with --resolution {image_size}"
         )
 
@@ -276,7 +276,7 @@ def _cmd_train(a: argparse.Namespace) -> int:
         if v is not None
     }
     mcfg, tcfg = run_configs(a.scale, a.preset, image_size=a.image_size, **overrides)
-    _check_data(a.data, a.preset, a.scale, mcfg.image_size)
+    _check_data(a.data, a.preset, a.scale, max(mcfg.image_size, tcfg.target_size or 0))
     if a.max_scenes is not None and a.max_scenes < 1:
         raise _UsageError(f"--max-scenes must be >= 1, got {a.max_scenes}")
     world = distributed.env_world_size()

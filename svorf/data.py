@@ -603,6 +603,9 @@ class RaySampler:
         ray_sampling: strategy name.
         error_map: the :class:`ErrorMap` of ``"error_driven"`` (shared by the samplers of
             one run); made here when None.
+        input_size: the encoder's input side (``TrainConfig.target_size``): the input view
+            is area-averaged down to it from the dataset's resolution, from which the target
+            rays still come. None = the dataset's resolution for both.
     """
 
     def __init__(
@@ -613,7 +616,13 @@ class RaySampler:
         nvs: bool = True,
         ray_sampling: str = "uniform",
         error_map: ErrorMap | None = None,
+        input_size: int | None = None,
     ) -> None:
+        if input_size is not None and not 1 <= input_size <= min(dataset.image_hw):
+            raise ValueError(
+                f"input_size must be in [1, {min(dataset.image_hw)}] (the dataset's "
+                f"resolution), got {input_size}"
+            )
         if rays_per_scene < 1:
             raise ValueError(f"rays_per_scene must be >= 1, got {rays_per_scene}")
         if ray_sampling not in RAY_SAMPLING:
@@ -628,6 +637,7 @@ class RaySampler:
         self.rays_per_scene = rays_per_scene
         self.nvs = nvs
         self.ray_sampling = ray_sampling
+        self.input_size = input_size
         self._fn = RAY_SAMPLING[ray_sampling]
         self.error_map: ErrorMap | None = None
         if ray_sampling in STATEFUL_RAY_SAMPLING:
@@ -678,6 +688,8 @@ class RaySampler:
             out["target_view"].append(vsel)
             out["target_pixel"].append(pix)
             out["input_c2w"].append(ds._c2w[s][iv].float())
-        return RayBatch(
-            scenes=scenes, input_view=inputs, **{k: torch.stack(x) for k, x in out.items()}
-        )
+        batch = {k: torch.stack(x) for k, x in out.items()}
+        if self.input_size is not None and (self.input_size,) * 2 != (h, w):
+            size = (self.input_size, self.input_size)
+            batch["images"] = F.interpolate(batch["images"], size=size, mode="area")
+        return RayBatch(scenes=scenes, input_view=inputs, **batch)

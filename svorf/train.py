@@ -252,7 +252,7 @@ def train(
 
     Args:
         data_dir: training split (``svorf.data.MultiViewDataset`` reads it at
-            ``model_cfg.image_size``).
+            ``model_cfg.image_size``, or at ``train_cfg.target_size`` when that is set).
         out_dir: run folder (created). Holding a checkpoint already is an error unless
             ``resume``.
         model_cfg, train_cfg: the configs (saved in every checkpoint).
@@ -394,9 +394,13 @@ def _setup(
         lo, hi = dctx.rank * b, (dctx.rank + 1) * b
         device = distributed.local_device(dctx, device)
     # truth=False: the ids and depth files are not even read (unsupervised training).
-    dataset = MultiViewDataset(
-        data_dir, image_size=model_cfg.image_size, max_scenes=max_scenes, truth=False
-    )
+    target = train_cfg.target_size or model_cfg.image_size
+    if target < model_cfg.image_size:
+        raise ValueError(
+            f"TrainConfig.target_size {target} is below the encoder's image_size "
+            f"{model_cfg.image_size}; pass a target_size >= {model_cfg.image_size} or None"
+        )
+    dataset = MultiViewDataset(data_dir, image_size=target, max_scenes=max_scenes, truth=False)
     eval_ds = None
     if main and eval_data is not None and train_cfg.eval_every:
         eval_ds = MultiViewDataset(
@@ -409,13 +413,17 @@ def _setup(
             f"ray_sampling={train_cfg.ray_sampling!r} keeps per-process error maps and is not "
             f"supported under torchrun; use 'object_heavy' or 'uniform' there"
         )
+    # image_hw: the resolution the model renders and is evaluated at (svorf render, edit)
+    hw = [model_cfg.image_size] * 2 if train_cfg.target_size else list(dataset.image_hw)
     data_info = {
         "fingerprint": dataset.fingerprint,
         "root": str(Path(data_dir).resolve()),
         "n_scenes": len(dataset),
-        "image_hw": list(dataset.image_hw),
+        "image_hw": hw,
         "preset": dataset.preset,
     }
+    if train_cfg.target_size:
+        data_info["target_hw"] = list(dataset.image_hw)
 
     torch.manual_seed(train_cfg.seed)
     gen = torch.Generator().manual_seed(train_cfg.seed)
@@ -453,8 +461,13 @@ def _samplers(
 ) -> tuple[RaySampler, RaySampler]:
     """The run's ray sampler, and the one of the ``nvs_warmup`` steps (rays from the
     input view; the same sampler when there is no warm-up). They share one ErrorMap."""
+    size = model_cfg.image_size if train_cfg.target_size else None  # the encoder's input
     sampler = RaySampler(
-        dataset, train_cfg.rays_per_scene, nvs=model_cfg.nvs, ray_sampling=train_cfg.ray_sampling
+        dataset,
+        train_cfg.rays_per_scene,
+        nvs=model_cfg.nvs,
+        ray_sampling=train_cfg.ray_sampling,
+        input_size=size,
     )
     if not (train_cfg.nvs_warmup and model_cfg.nvs):
         return sampler, sampler
@@ -464,6 +477,7 @@ def _samplers(
         nvs=False,
         ray_sampling=train_cfg.ray_sampling,
         error_map=sampler.error_map,
+        input_size=size,
     )
     return sampler, warm
 

@@ -100,6 +100,14 @@ class TrainConfig:
     """Held-out scenes used by each evaluation."""
     device: str = "auto"
     """"auto" (CUDA when available, else CPU), "cpu", "cuda" or "cuda:N"."""
+    target_size: int | None = None
+    """Resolution of the images the training rays are drawn from (square; the training split
+    must hold at least it), above the encoder's ``ModelConfig.image_size``: the encoder
+    still sees the input view area-averaged down to ``image_size``, while the target rays
+    and colours come from the finer grid, so an object's edge is supervised at
+    sub-pixel detail of the evaluation resolution and a step costs the same (same rays,
+    same encoder input). Evaluation and rendering stay at ``image_size``. None =
+    ``image_size`` (the paper: one resolution). A lever (docs/notes/cpu_recipe.md)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
@@ -127,6 +135,10 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
             raise ValueError(f"TrainConfig.betas must be two numbers in [0, 1), got {self.betas}")
+        if self.target_size is not None and int(self.target_size) < 8:
+            raise ValueError(
+                f"TrainConfig.target_size must be None or >= 8 pixels, got {self.target_size}"
+            )
         if self.ray_sampling not in RAY_SAMPLING:
             raise ValueError(
                 f"TrainConfig.ray_sampling must be one of {sorted(RAY_SAMPLING)}, "
@@ -134,9 +146,12 @@ class TrainConfig:
             )
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it."""
+        """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
+        ``target_size`` only when set, so that the keys of earlier runs stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
+        if d["target_size"] is None:
+            del d["target_size"]
         return d
 
     @classmethod

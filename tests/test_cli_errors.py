@@ -185,6 +185,12 @@ def test_recipe_help_is_whole_and_errors_one_line(tmp_path, capsys):
     argv = ["train-eval", "--data", "a", "--test", "b", "--out", str(run), "--minutes", "1"]
     assert recipe_main(argv) == 2
     assert "--resume" in _one_line_error(capsys, "python -m benchmark.tools.recipe")
+    argv = ["train-eval", "--data", "a", "--test", "b", "--out", str(tmp_path / "new"),
+            "--minutes", "1"]  # fmt: skip
+    for bad, says in (("target_sise=128", "target_sise"), ("target_size=4", "target_size")):
+        assert recipe_main([*argv, "--train-set", bad]) == 2
+        err = _one_line_error(capsys, "python -m benchmark.tools.recipe")
+        assert says in err and "--train-set" in err
 
 
 # ------------------------------------------------------------------ benchmark

@@ -141,6 +141,27 @@ def test_sampler_draws_only_target_views(ds):
     assert bool((b.target_view == b.input_view[:, None]).all())
 
 
+def test_sampler_input_size_shrinks_only_the_encoder_input(ds):
+    """TrainConfig.target_size's sampler: the input view is area-averaged down to
+    input_size (what the dataset's own resize would give), the target rays and colours stay
+    at the dataset's resolution and are the same draws as without it."""
+    small = MultiViewDataset(ds.root, image_size=16)
+    fine = RaySampler(ds, rays_per_scene=32, nvs=True, input_size=16)
+    plain = RaySampler(ds, rays_per_scene=32, nvs=True)
+    a = fine.sample([0, 1], torch.Generator().manual_seed(4))
+    b = plain.sample([0, 1], torch.Generator().manual_seed(4))
+    assert a.images.shape == (2, 3, 16, 16) and b.images.shape == (2, 3, 32, 32)
+    for i, s in enumerate(a.scenes.tolist()):
+        want = small[s].images[a.input_view[i]]  # stored as uint8 after its resize
+        assert float((a.images[i] - want).abs().max()) <= 0.5 / 255 + 1e-6
+    for k in ("rays_o", "rays_d", "target_rgb", "target_pixel", "input_c2w"):
+        assert torch.equal(getattr(a, k), getattr(b, k)), k
+    assert torch.equal(RaySampler(ds, 8, input_size=32).sample([0], torch.Generator()).images,
+                       RaySampler(ds, 8).sample([0], torch.Generator()).images)  # fmt: skip
+    with pytest.raises(ValueError, match="input_size"):
+        RaySampler(ds, 8, input_size=64)
+
+
 def test_pixel_rays_equal_the_matrix_form():
     """The element-wise float64 rays equal inv(K) @ [u+.5, v+.5, 1] rotated to the world
     (the matrix form), for a skewed K and a rotation with every entry non-zero."""

@@ -219,6 +219,27 @@ def test_corrupt_or_missing_checkpoint_is_a_one_line_error(split, tmp_path):
         load_run(run)
 
 
+def test_target_size_draws_rays_from_the_finer_grid(split, tmp_path):
+    """TrainConfig.target_size: the rays come from the 32x32 images while the encoder sees
+    16x16; the run renders and evaluates at image_size, and the config key of a run
+    without it is unchanged (the field is omitted when None)."""
+    assert "target_size" not in tcfg().to_dict()
+    cfg = tcfg(steps=3, target_size=32)
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    run = tmp_path / "fine"
+    train(split, run, MCFG, cfg, progress=False)
+    model, info = load_run(run)
+    assert info.train.target_size == 32
+    assert info.dataset["image_hw"] == [16, 16] and info.dataset["target_hw"] == [32, 32]
+    ds = MultiViewDataset(split, image_size=info.dataset["image_hw"])
+    assert predict_scene(model, ds, 0, chunk=256).rgb.shape == (4, 16, 16, 3)
+    assert [r["step"] for r in _log(run)] == [1, 2, 3]
+    with pytest.raises(ValueError, match="target_size"):
+        train(split, tmp_path / "low", MCFG, tcfg(steps=1, target_size=8), progress=False)
+    with pytest.raises(ValueError, match="target_size"):
+        TrainConfig(target_size=4)
+
+
 def test_configs_registry_and_json_round_trip():
     for scale in ("smoke", "cpu", "paper"):
         cfg = train_config(scale, "clevr567")

@@ -674,6 +674,14 @@ def main(argv: list[str] | None = None) -> int:
         help="any other ModelConfig field (VALUE as JSON, else a string), repeatable; "
         "e.g. --model-set slot_module=slot_attention",
     )
+    t.add_argument(
+        "--train-set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="any other TrainConfig field (VALUE as JSON, else a string), repeatable; "
+        "e.g. --train-set target_size=128",
+    )
     dg = sub.add_parser(
         "diagnose",
         help="per-object failure breakdown of a run on held-out scenes (lost / merged / own)",
@@ -745,10 +753,14 @@ def main(argv: list[str] | None = None) -> int:
         levers["fg_box"] = a.fg_box if a.fg_box > 0 else None
     over = {k: getattr(a, k) for k in ("lr", "warmup", "batch_scenes", "rays_per_scene", "seed")
             if getattr(a, k) is not None}  # fmt: skip
-    mcfg, tcfg = recipe_configs(a.preset, levers, steps=1_000_000, eval_every=a.eval_every,
-                                eval_scenes=a.eval_scenes, ckpt_every=100, **over)  # fmt: skip
-    if a.model_set:
-        mcfg = mcfg.replace(**dict(_parse_set(x) for x in a.model_set))
+    over.update(_parse_set(x, "--train-set") for x in a.train_set)
+    try:
+        mcfg, tcfg = recipe_configs(a.preset, levers, steps=1_000_000, eval_every=a.eval_every,
+                                    eval_scenes=a.eval_scenes, ckpt_every=100, **over)  # fmt: skip
+        if a.model_set:
+            mcfg = mcfg.replace(**dict(_parse_set(x) for x in a.model_set))
+    except (TypeError, ValueError) as err:  # an unknown field or a value its checks refuse
+        return fail(_PROG, f"train-eval: {err}; see --model-set / --train-set")
     res = train_eval(a.data, a.test, a.out, a.minutes, mcfg, tcfg,
                      seg_metrics=None, resume=a.resume,
                      grid_scenes=a.grid_scenes, final_scenes=a.final_scenes,
