@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from benchmark import adapter
-from benchmark.datasets import DatasetInfo, dataset_dir, ensure_dataset
+from benchmark.datasets import DatasetInfo, at_resolution, dataset_dir, ensure_dataset
 from benchmark.evaluate import BASELINES, EVAL_VERSION, EvalResult, evaluate_baselines
 from benchmark.jobs import ModelJob, evaluate_run, read_eval, train_run, write_eval
 from benchmark.log import log
@@ -277,16 +277,18 @@ class Context:
         keep = set(self.only_datasets)
         return [d for d in known if d in keep], [d for d in known if d not in keep]
 
-    def dataset(self, preset: str, split: str) -> DatasetInfo:
-        """The split folder (generated if missing), timed under ``data``."""
-        k = (preset, split)
+    def dataset(self, preset: str, split: str, resolution: int | None = None) -> DatasetInfo:
+        """The split folder (generated if missing), timed under ``data``; at ``resolution``
+        instead of the scale's when given (:func:`benchmark.datasets.at_resolution`)."""
+        settings = at_resolution(self.settings, resolution)
+        k = (preset, split) if settings is self.settings else (preset, split, settings.resolution)
         if k not in self.datasets:
             t = time.perf_counter()
-            where = dataset_dir(self.data, self.settings.name, preset, split)
-            log(f"dataset {preset}/{split} ({self.scale}, source {self.data_source}): {where}")
+            where = dataset_dir(self.data, settings.name, preset, split)
+            log(f"dataset {preset}/{split} ({settings.name}, source {self.data_source}): {where}")
             self.datasets[k] = ensure_dataset(
                 self.data,
-                self.settings,
+                settings,
                 preset,
                 split,
                 source=self.data_source,
@@ -297,6 +299,15 @@ class Context:
             )
             self.timers["data"] += time.perf_counter() - t
         return self.datasets[k]
+
+    def train_dataset(self, job: ModelJob) -> DatasetInfo:
+        """``job``'s training split: the scale's, or the same scenes at the finer
+        resolution its ``TrainConfig.target_size`` asks for."""
+        return self.dataset(job.train_preset, "train", self.train_resolution(job))
+
+    def train_resolution(self, job: ModelJob) -> int | None:
+        """The resolution ``job``'s training asks of its split (None: the scale's)."""
+        return getattr(self.configs(job)[1], "target_size", None)
 
     # ------------------------------------------------------------------ models
 
@@ -320,7 +331,7 @@ class Context:
 
     def model_key(self, job: ModelJob) -> tuple[str, dict[str, Any]]:
         """``(cache key, key source)`` of ``job``'s run (needs its training split)."""
-        ds = self.dataset(job.train_preset, "train")
+        ds = self.train_dataset(job)
         mcfg, tcfg = self.configs(job)
         key_src: dict[str, Any] = {
             "adapter": adapter.ADAPTER_VERSION,
@@ -354,7 +365,8 @@ class Context:
             changes["steps"] = int(self.train_steps)
         if adapter.config_key(mcfg, replace(tcfg, **changes)) != self.config_key(job):
             return None
-        data = dataset_dir(self.data, self.settings.name, job.train_preset, "train")
+        where = at_resolution(self.settings, self.train_resolution(job)).name
+        data = dataset_dir(self.data, where, job.train_preset, "train")
         words = ["svorf train", f"--scale {self.scale}", f"--preset {preset}", f"--data {data}"]
         if self.train_steps is not None:
             words.append(f"--steps {self.train_steps}")
@@ -392,7 +404,7 @@ class Context:
 
         With ``train=False`` only a finished cached run is returned (else None).
         """
-        ds = self.dataset(job.train_preset, "train")
+        ds = self.train_dataset(job)
         mcfg, tcfg = self.configs(job)
         mdict, tdict = adapter.config_dict(mcfg), adapter.config_dict(tcfg)
         key, key_src = self.model_key(job)

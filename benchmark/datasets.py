@@ -22,7 +22,10 @@ Existing splits (e.g. rendered by hand with ``generate``) are reused, never sile
   seed come from its manifest into the report, with ``deviations`` from the scale's
   nominal settings; a deviating split not generated in this run is first checked with
   ``generators.verify.verify_split`` (problems are an error);
-- another resolution than the scale's is an error.
+- another resolution than the scale's is an error. A model whose training asks for finer
+  images (``TrainConfig.target_size``) trains on a split of its own at that resolution,
+  ``<data>/<scale>-<res>px/<preset>/<split>`` (:func:`at_resolution`): the same scenes,
+  rendered finer; the scale's own splits are untouched.
 
 The fingerprint (SHA-256 over ``manifest.json`` and the scene JSONs, via the
 adapter) goes into the model cache key and into the report.
@@ -32,7 +35,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -111,6 +114,18 @@ class DatasetInfo:
 def dataset_dir(data_root: str | os.PathLike, scale: str, preset: str, split: str) -> Path:
     """``<data>/<scale>/<preset>/<split>``."""
     return Path(data_root) / scale / preset / split
+
+
+def at_resolution(settings: ScaleSettings, resolution: int | None) -> ScaleSettings:
+    """The scale's settings for splits rendered at ``resolution`` instead of the scale's
+    (None or the same: ``settings`` itself). Their name, and so their folder, is
+    ``<scale>-<res>px``: the same scenes and render settings, kept apart from the scale's
+    own splits."""
+    if resolution is None or int(resolution) == settings.resolution:
+        return settings
+    return replace(
+        settings, name=f"{settings.name}-{int(resolution)}px", resolution=int(resolution)
+    )
 
 
 def _complete(root: Path, n_scenes: int, resolution: int) -> tuple[bool, str]:

@@ -134,7 +134,7 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
         for spec in measured:
             try:
                 tests[spec.dataset] = ctx.dataset(spec.dataset, "test")
-                ctx.dataset(spec.job.train_preset, "train")
+                ctx.train_dataset(spec.job)
             except DatasetUnavailable:
                 tests.pop(spec.dataset, None)  # the row loop records why
         specs = [s for s in measured if s.dataset in tests]
@@ -159,7 +159,7 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
             task = ray.remote(_train_task)
             refs = {}
             for key, job in jobs.items():
-                ds = ctx.dataset(job.train_preset, "train")
+                ds = ctx.train_dataset(job)
                 mcfg, tcfg = ctx.configs(job)
                 kwargs = {
                     "ds_path": ds.path,

@@ -182,7 +182,7 @@ def run_table_protocol(
         rid = row_id(spec.table, spec.model, spec.dataset, "measured")
         try:
             test = ctx.dataset(spec.dataset, "test")
-            ctx.dataset(spec.job.train_preset, "train")
+            ctx.train_dataset(spec.job)
         except DatasetUnavailable as err:
             log(f"row {spec.table} / {spec.model} / {spec.dataset}: dataset unavailable: {err}")
             unavailable.append(f"{spec.table} / {spec.model} / {spec.dataset}: {err}")

@@ -252,3 +252,24 @@ def test_a_cpu_report_says_its_models_train_with_the_cpu_recipe(tmp_path):
     assert any("cpu recipe" in n and "docs/notes/cpu_recipe.md" in n for n in report["notes"])
     assert any("8 render samples (nominal 16)" in n for n in report["notes"])
     assert report["models"][0]["config_source"] == adapter.RECIPE_CONFIG_SOURCE
+
+
+def test_a_model_that_asks_for_finer_targets_trains_on_its_own_finer_split(tmp_path, monkeypatch):
+    """TrainConfig.target_size above the scale's resolution: the benchmark makes the
+    training split at that resolution in a folder of its own (``<scale>-<res>px``), trains
+    on it, and evaluates on the scale's test split as always; the report lists both."""
+    plain = adapter.train_config
+    monkeypatch.setattr(
+        adapter, "train_config", lambda *a, **k: plain(*a, **k).replace(target_size=64)
+    )
+    assert _run(tmp_path, "--datasets", "clevr567", "--steps", "2") == 0
+    report = _report(tmp_path)
+    splits = {(d["split"], d["resolution"]): Path(d["path"]) for d in report["datasets"]}
+    assert set(splits) == {("train", 64), ("test", 32)}
+    assert splits["train", 64].parent.parent.name == "smoke-64px"
+    assert splits["test", 32].parent.parent.name == "smoke"
+    assert not (tmp_path / "data" / "smoke" / "clevr567" / "train").exists()
+    (model,) = report["models"]
+    assert model["steps_done"] == 2
+    measured = [r for r in report["rows"] if r["source"] == "measured"]
+    assert measured and all(r["metrics"]["fg_ari"] is not None for r in measured)

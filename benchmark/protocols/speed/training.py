@@ -93,7 +93,7 @@ def worker_args(
     """The worker's arguments for training ``job`` at ``batch_scenes`` scenes per step
     (None = the scale's) on the splits of ``job.train_preset``, in a work folder named by
     ``tag``; ``extra`` goes to the worker as is."""
-    train = ctx.dataset(job.train_preset, "train")
+    train = ctx.train_dataset(job)
     test = ctx.dataset(job.train_preset, "test")
     work = (
         ctx.out
