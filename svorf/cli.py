@@ -213,7 +213,9 @@ def _manifest_preset(meta: Manifest | None) -> str | None:
     return (meta.preset or None) if meta is not None else None
 
 
-def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
+def _check_data(
+    data: str, preset: str, scale: str, image_size: int, target_size: int | None = None
+) -> None:
     """Fail fast (before building the model) on a data folder that cannot fit the run."""
     from svorf.train import PRESETS
 
@@ -225,11 +227,17 @@ def _check_data(data: str, preset: str, scale: str, image_size: int) -> None:
             f"--preset {preset} trains on {'/'.join(wanted)} data, but {data} holds "
             f"preset {found!r} (pass --preset {_preset_for(found)})"
         )
-    res = meta.resolution if meta is not None else None
-    if isinstance(res, tuple) and min(int(r) for r in res) < image_size:
+    res = tuple(meta.image_hw) if meta is not None else None
+    if res is not None and target_size and min(int(r) for r in res) < target_size:
         raise _UsageError(
-            f"--scale {scale} trains on {image_size}x{image_size} images but {data} holds "
-            f"{res[0]}x{res[1]} ones; pass --image-size {min(int(r) for r in res)} or "
+            f"--scale {scale} draws its training rays from {target_size}x{target_size} "
+            f"images (TrainConfig.target_size) but {data} holds {res[0]}x{res[1]} ones; "
+            f"render the split with --resolution {target_size}"
+        )
+    if res is not None and min(int(r) for r in res) < image_size:
+        raise _UsageError(
+            f"--scale {scale} trains at {image_size}x{image_size} but {data} holds "
+            f"{res[0]}x{res[1]} images; pass --image-size {min(int(r) for r in res)} or "
             f"regenerate with --resolution {image_size}"
         )
 
@@ -276,7 +284,7 @@ def _cmd_train(a: argparse.Namespace) -> int:
         if v is not None
     }
     mcfg, tcfg = run_configs(a.scale, a.preset, image_size=a.image_size, **overrides)
-    _check_data(a.data, a.preset, a.scale, max(mcfg.image_size, tcfg.target_size or 0))
+    _check_data(a.data, a.preset, a.scale, mcfg.image_size, tcfg.target_size)
     if a.max_scenes is not None and a.max_scenes < 1:
         raise _UsageError(f"--max-scenes must be >= 1, got {a.max_scenes}")
     world = distributed.env_world_size()

@@ -240,6 +240,27 @@ def test_target_size_draws_rays_from_the_finer_grid(split, tmp_path):
         TrainConfig(target_size=4)
 
 
+def test_cli_train_refuses_data_coarser_than_target_size(split, tmp_path, capsys, monkeypatch):
+    """svorf train whose configs ask for 64x64 targets on a 32x32 split: one line that
+    names target_size and the resolution to render, before any model is built."""
+    import svorf.train as train_mod
+
+    plain = train_mod.run_configs
+
+    def finer(*a, **k):
+        m, t = plain(*a, **k)
+        return m, t.replace(target_size=64)
+
+    monkeypatch.setattr(train_mod, "run_configs", finer)
+    argv = ["train", "--scale", "smoke", "--preset", "synthetic", "--data", str(split),
+            "--out", str(tmp_path / "run"), "--no-progress"]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("svorf: error:") and len(err.splitlines()) == 1, err
+    assert "target_size" in err and "--resolution 64" in err
+    assert not (tmp_path / "run").exists()
+
+
 def test_configs_registry_and_json_round_trip():
     for scale in ("smoke", "cpu", "paper"):
         cfg = train_config(scale, "clevr567")
