@@ -87,9 +87,11 @@ def test_config_key_names_what_is_learned():
     changed = {"device": "cuda", "log_every": 1, "ckpt_every": 7, "eval_every": 3, "eval_scenes": 9}
     assert set(changed) == set(BOOKKEEPING_FIELDS)
     assert config_key(m, t.replace(**changed)) == key
-    assert set(learning_fields(t)) == {f.name for f in dataclasses.fields(TrainConfig)} - set(
-        BOOKKEEPING_FIELDS
-    )
+    every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
+    # target_size is written only when set, so that the keys of earlier runs stay valid
+    assert set(learning_fields(t)) == every - {"target_size"}
+    finer = t.replace(target_size=128)
+    assert set(learning_fields(finer)) == every and config_key(m, finer) != key
     assert config_key(m, t.replace(seed=1)) != key
     assert config_key(m.replace(num_slots=7), t) != key
     assert config_key(*run_configs("cpu", "clevr567", recipe=False)) != key
