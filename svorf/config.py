@@ -314,6 +314,20 @@ class ModelConfig:
     in any recipe: a fine-tune probe narrowed the rim but cost FG-ARI at both seeds
     (docs/notes/cpu_recipe.md)."""
 
+    fg_binary: tuple[float, float, float] | None = None
+    """A price on soft object matter, ``(lambda, p0, p1)``: the loss gains ``w * mean over
+    rays of sum_i f_i alpha_i (1 - alpha_i)``, with ``alpha_i = 1 - exp(-sigma_i delta_i)``
+    the composed field's opacity of sample ``i`` (fine pass, intervals to the ray's far
+    bound), ``f_i`` the object slots' share of that point (``1 - m_bg``), and ``w`` ramped
+    as for ``fg_mass`` (0 before ``p0``, ``lambda`` from ``p1`` on). Empty space and solid
+    matter cost nothing; only half-transparent matter does. A halo of thin object density
+    beside an object is half-transparent everywhere, and a ray that grazes it gathers enough
+    of it to be claimed for the object: that is the rim of floor the masks give to object
+    slots. Unlike ``fg_mass`` an object pays nothing for being there, only for a soft edge,
+    so small solid objects are not priced out. The current weight is a model buffer
+    (``fg_binary_weight``), saved in checkpoints. None = off (paper; a lever,
+    docs/notes/cpu_recipe.md)."""
+
     slot_locality_narrow: tuple[float, float, float] | None = None
     """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
     ``slot_locality`` until the run's progress reaches ``p0``, ``r_end`` from ``p1`` on,
@@ -395,6 +409,12 @@ class ModelConfig:
                     f"ModelConfig.fg_mass must be (lambda, p0, p1), got {self.fg_mass}"
                 )
             object.__setattr__(self, "fg_mass", tuple(float(v) for v in self.fg_mass))
+        if self.fg_binary is not None:  # JSON gives a list
+            if len(self.fg_binary) != 3:
+                raise ValueError(
+                    f"ModelConfig.fg_binary must be (lambda, p0, p1), got {self.fg_binary}"
+                )
+            object.__setattr__(self, "fg_binary", tuple(float(v) for v in self.fg_binary))
         if self.box_z is not None:  # JSON gives a list
             if len(self.box_z) != 2:
                 raise ValueError(f"ModelConfig.box_z must be (floor, ceiling), got {self.box_z}")
@@ -532,6 +552,13 @@ class ModelConfig:
                     "ModelConfig.fg_mass must be (lambda, p0, p1) with lambda >= 0 and "
                     f"0 <= p0 <= p1 <= 1 (fractions of the run), got {self.fg_mass}"
                 )
+        if self.fg_binary is not None:
+            lam, p0, p1 = self.fg_binary
+            if not (lam >= 0 and 0.0 <= p0 <= p1 <= 1.0):
+                raise ValueError(
+                    "ModelConfig.fg_binary must be (lambda, p0, p1) with lambda >= 0 and "
+                    f"0 <= p0 <= p1 <= 1 (fractions of the run), got {self.fg_binary}"
+                )
         halo = self.fg_mass_halo
         if halo is not None and (self.fg_mass is None or not self.bg_outside_fg or not halo > 0):
             raise ValueError(
@@ -618,6 +645,8 @@ class ModelConfig:
             d["slot_locality_narrow"] = list(self.slot_locality_narrow)
         if self.fg_mass is not None:
             d["fg_mass"] = list(self.fg_mass)
+        if self.fg_binary is not None:
+            d["fg_binary"] = list(self.fg_binary)
         for name in _OMITTED_WHEN_NONE:  # off: not written, so keys of earlier runs stay valid
             if d[name] is None:
                 del d[name]
@@ -665,6 +694,7 @@ _OMITTED_WHEN_NONE = (
     "enc_up_kernel",
     "fg_mass",
     "fg_mass_halo",
+    "fg_binary",
 )
 _OMITTED_WHEN_FALSE = ("bg_achromatic", "clip_floor_front", "slot_locality_xy")
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .render import render_weights, volume_render
+from .render import SIGMA_GUARD, render_weights, volume_render
 
 
 def _check(weights: Tensor, edges: Tensor, name: str) -> None:
@@ -135,6 +135,32 @@ def object_mass(acc: Tensor, slot_probs: Tensor | None, gate: Tensor | None = No
         )
     mass = acc * (1.0 - slot_probs[..., -1])
     return mass.mean() if gate is None else (mass * gate).mean()
+
+
+def soft_matter(sigma: Tensor, t: Tensor, far_r: Tensor, share: Tensor) -> Tensor:
+    """Mean over rays of ``sum_i share_i alpha_i (1 - alpha_i)``: how much half-transparent
+    matter the rays meet (``ModelConfig.fg_binary`` puts a price on it). 0 for empty space
+    and for solid matter alike.
+
+    Args:
+        sigma: [B, R, N] composed densities at the sorted samples ``t`` [B, R, N].
+        far_r: [B, R] each ray's far bound (the last interval ends there, as in
+            :func:`connectivity_loss`).
+        share: [B, R, N] the object slots' share of each point (``1 - m_bg``).
+    Returns:
+        scalar float32 tensor.
+    """
+    if t.shape != sigma.shape or share.shape != sigma.shape or far_r.shape != sigma.shape[:-1]:
+        raise ValueError(
+            f"soft_matter: expected sigma, t, share [B, R, N] and far_r [B, R]; got sigma "
+            f"{tuple(sigma.shape)}, t {tuple(t.shape)}, share {tuple(share.shape)}, far_r "
+            f"{tuple(far_r.shape)}"
+        )
+    edges = torch.cat([t.float(), far_r.float()[..., None]], dim=-1)
+    edges = torch.maximum(edges, torch.cummax(edges, dim=-1).values)  # far_r >= t_N guard
+    delta = edges[..., 1:] - edges[..., :-1]
+    alpha = 1.0 - torch.exp(-sigma.float().clamp(0.0, SIGMA_GUARD) * delta)
+    return (share.float() * alpha * (1.0 - alpha)).sum(dim=-1).mean()
 
 
 def halo_gate(bg_rgb: Tensor | None, target: Tensor, tau: float) -> Tensor:

@@ -49,7 +49,7 @@ from .decoder import build_slot_module
 from .encoder import ImageEncoder
 from .field import CondParams, FieldParams, build_fields, positional_encoding
 from .frames import azimuth_frame, centre_anchors, token_ground_points
-from .losses import background_colour, connectivity_loss, halo_gate, object_mass
+from .losses import background_colour, connectivity_loss, halo_gate, object_mass, soft_matter
 from .march import FieldQuery, QueryContext, RayMarcher
 from .render import clip_rays_to_box
 
@@ -72,6 +72,9 @@ class RenderOutput:
     bg_rgb: [B, R, 3] colour the background slot renders on its own
         (:func:`~svorf.losses.background_colour`); only with ``ModelConfig.fg_mass_halo``
         and need_aux=True, else None.
+    soft_matter: scalar :func:`~svorf.losses.soft_matter` of the fine pass (the object
+        slots' half-transparent matter); only with ``ModelConfig.fg_binary`` and
+        need_aux=True, else None.
     """
 
     rgb: Tensor
@@ -81,6 +84,7 @@ class RenderOutput:
     connectivity: Tensor
     coarse_rgb: Tensor
     bg_rgb: Tensor | None = None
+    soft_matter: Tensor | None = None
 
 
 @dataclass
@@ -162,6 +166,8 @@ class SVORF(nn.Module):
             self.register_buffer("locality_radius", torch.tensor(float(cfg.slot_locality)))
         if cfg.fg_mass is not None:  # the price on the object slots' rendered weight now
             self.register_buffer("fg_mass_weight", torch.zeros(()))
+        if cfg.fg_binary is not None:  # the price on soft object matter now
+            self.register_buffer("fg_binary_weight", torch.zeros(()))
 
     # ------------------------------------------------------------------ encoding
     def encode(self, images: Tensor, return_attn: bool = False) -> Tensor | tuple[Tensor, Tensor]:
@@ -369,7 +375,13 @@ class SVORF(nn.Module):
         bg_rgb = None
         if need_aux and cfg.fg_mass_halo is not None:
             bg_rgb = background_colour(q.sigma, q.rgb, q.m, t, is_bg, marcher.last_delta)
-        return RenderOutput(rgb, depth, acc, slot_probs, connectivity, p.coarse_rgb, bg_rgb)
+        soft = None
+        if need_aux and cfg.fg_binary is not None:
+            share = 1.0 - (q.m * is_bg[:, None, None, :].to(q.m.dtype)).sum(dim=-1)
+            soft = soft_matter(q.sigma, t, far_r, share)
+        return RenderOutput(
+            rgb, depth, acc, slot_probs, connectivity, p.coarse_rgb, bg_rgb, soft
+        )  # fmt: skip
 
     def _query(self, ctx: QueryContext, t: Tensor) -> FieldQuery:
         """Composed field at samples t [B, R, N] of every ray of ``ctx`` (the field query
@@ -481,7 +493,7 @@ class SVORF(nn.Module):
         """Tell the model how far its training run is (a fraction in [0, 1], as for the
         learning-rate schedule); sets what depends on it (``bg_chroma_fade``'s ``bg_chroma``
         buffer, ``slot_locality_narrow``'s ``locality_radius``, ``fg_mass``'s
-        ``fg_mass_weight``). The training loop calls it before every step; a no-op without
+        ``fg_mass_weight``, ``fg_binary``'s ``fg_binary_weight``). The training loop calls it before every step; a no-op without
         such fields."""
         fade = self.cfg.bg_chroma_fade
         if fade is not None:
@@ -493,6 +505,9 @@ class SVORF(nn.Module):
         if self.cfg.fg_mass is not None:
             lam, p0, p1 = self.cfg.fg_mass
             self.fg_mass_weight.fill_(lam * _ramp(progress, p0, p1))
+        if self.cfg.fg_binary is not None:
+            lam, p0, p1 = self.cfg.fg_binary
+            self.fg_binary_weight.fill_(lam * _ramp(progress, p0, p1))
 
     def query_context(
         self,
@@ -678,7 +693,8 @@ class SVORF(nn.Module):
             target_rgb: [B, R, 3] in [0, 1].
         Returns:
             total (scalar, differentiable) and detached scalars: "mse", "mse_coarse",
-            "connectivity", "psnr", "total" (and "fg_mass" with ``ModelConfig.fg_mass``).
+            "connectivity", "psnr", "total" (and "fg_mass" with ``ModelConfig.fg_mass``,
+            "soft_matter" with ``ModelConfig.fg_binary``).
         """
         if target_rgb.shape != out.rgb.shape:
             raise ValueError(
@@ -701,6 +717,13 @@ class SVORF(nn.Module):
                 gate = halo_gate(out.bg_rgb, target, cfg.fg_mass_halo)
             fg_mass = object_mass(out.acc, out.slot_probs, gate)
             total = total + self.fg_mass_weight * fg_mass
+        if cfg.fg_binary is not None:
+            if out.soft_matter is None:
+                raise ValueError(
+                    "SVORF.loss: ModelConfig.fg_binary needs the soft-matter term; render "
+                    "with need_aux=True"
+                )
+            total = total + self.fg_binary_weight * out.soft_matter
         stats = {
             "mse": mse.detach(),
             "mse_coarse": mse_c.detach(),
@@ -710,6 +733,8 @@ class SVORF(nn.Module):
         }
         if fg_mass is not None:
             stats["fg_mass"] = fg_mass.detach()
+        if cfg.fg_binary is not None:
+            stats["soft_matter"] = out.soft_matter.detach()
         return total, stats
 
     @torch.no_grad()

@@ -935,6 +935,78 @@ def test_fg_mass_prices_what_the_object_slots_render(tmp_path):
         model.loss(no_aux, target)
 
 
+def test_soft_matter_prices_only_half_transparent_object_matter():
+    """soft_matter: sum_i share_i alpha_i (1 - alpha_i) per ray, mean over rays: 0 for empty
+    space and for solid matter, 1/4 per sample of opacity 1/2, scaled by the object share;
+    the last interval ends at the ray's far bound."""
+    from svorf.losses import soft_matter
+
+    t = torch.tensor([[[1.0, 2.0, 3.0]]])  # [B=1, R=1, N=3], far bound 4: deltas 1, 1, 1
+    far = torch.tensor([[4.0]])
+    one = torch.ones(1, 1, 3)
+    assert float(soft_matter(torch.zeros(1, 1, 3), t, far, one)) == 0.0
+    assert float(soft_matter(torch.full((1, 1, 3), 1e12), t, far, one)) == 0.0
+    half = torch.full((1, 1, 3), math.log(2.0))  # alpha = 1/2 on every interval
+    assert float(soft_matter(half, t, far, one)) == pytest.approx(0.75)
+    share = torch.tensor([[[1.0, 0.5, 0.0]]])
+    assert float(soft_matter(half, t, far, share)) == pytest.approx(0.25 * 1.5)
+    # Two rays: the mean over rays.
+    two = soft_matter(
+        torch.cat([half, torch.zeros(1, 1, 3)], 1), t.expand(1, 2, 3), far.expand(1, 2),
+        one.expand(1, 2, 3),
+    )  # fmt: skip
+    assert float(two) == pytest.approx(0.375)
+    with pytest.raises(ValueError, match="soft_matter"):
+        soft_matter(half, t, far, torch.ones(1, 1, 2))
+
+
+def test_fg_binary_prices_soft_object_matter(tmp_path):
+    """fg_binary=(lambda, p0, p1): the loss gains w * soft_matter (the object slots' share
+    of the fine pass's half-transparent samples) with w ramped from 0 (before p0) to lambda
+    (from p1 on); the weight is a buffer a checkpoint carries; a gradient step on the price
+    alone lowers it; the default key is unchanged and bad values are refused."""
+    assert "fg_binary" not in ModelConfig().to_dict()
+    o, d = make_rays(2, 32)
+    model = smoke(fg_binary=(0.5, 0.2, 0.6))
+    assert ModelConfig.from_dict(model.cfg.to_dict()).fg_binary == (0.5, 0.2, 0.6)
+    plain = smoke()
+    plain.load_state_dict({k: v for k, v in model.state_dict().items() if k != "fg_binary_weight"})
+    images, target = make_images(2), torch.rand(2, 32, 3)
+    torch.manual_seed(0)
+    out = model(images, o, d)
+    soft = float(out.soft_matter.detach())
+    assert soft > 0.0
+    base, _ = plain.loss(out, target)
+    for progress, w in ((0.0, 0.0), (0.2, 0.0), (0.4, 0.25), (0.6, 0.5), (0.9, 0.5)):
+        model.set_progress(progress)
+        assert float(model.fg_binary_weight) == pytest.approx(w)
+        total, parts = model.loss(out, target)
+        assert float(parts["soft_matter"]) == pytest.approx(soft, rel=1e-6)
+        assert float(total.detach()) == pytest.approx(float(base.detach()) + w * soft, rel=1e-5)
+    torch.save(model.state_dict(), tmp_path / "m.pt")
+    again = smoke(fg_binary=(0.5, 0.2, 0.6))
+    again.load_state_dict(torch.load(tmp_path / "m.pt"))
+    assert float(again.fg_binary_weight) == pytest.approx(0.5)
+
+    def price(m):
+        torch.manual_seed(0)
+        return m(images, o, d).soft_matter
+
+    before = price(model)
+    opt = torch.optim.SGD(model.parameters(), lr=0.5)
+    opt.zero_grad()
+    price(model).backward()
+    opt.step()
+    assert float(price(model).detach()) < float(before.detach())
+    for bad in ((-0.1, 0.2, 0.6), (0.5, 0.6, 0.2), (0.5, 0.2, 1.5), (0.5, 0.2)):
+        with pytest.raises(ValueError, match="fg_binary"):
+            ModelConfig(fg_binary=bad)
+    no_aux = model.render_rays(model.encode(images), o, d, need_aux=False)
+    assert no_aux.soft_matter is None
+    with pytest.raises(ValueError, match="need_aux"):
+        model.loss(no_aux, target)
+
+
 def test_background_colour_renders_the_scene_without_the_object_region():
     """background_colour: the composed field with each point's density scaled by the
     background's mask, rendered as usual: a ray through a red object point (mask 0) in front
