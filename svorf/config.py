@@ -325,8 +325,9 @@ class ModelConfig:
     of it to be claimed for the object: that is the rim of floor the masks give to object
     slots. Unlike ``fg_mass`` an object pays nothing for being there, only for a soft edge,
     so small solid objects are not priced out. The current weight is a model buffer
-    (``fg_binary_weight``), saved in checkpoints. None = off (paper; a lever,
-    docs/notes/cpu_recipe.md)."""
+    (``fg_binary_weight``), saved in checkpoints. None = off (paper). A lever, not in any
+    recipe: at the cpu scale it gave the rim back but lost small objects to the background,
+    which paints them onto the floor (docs/notes/cpu_recipe.md)."""
 
     slot_locality_narrow: tuple[float, float, float] | None = None
     """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
