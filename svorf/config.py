@@ -328,6 +328,12 @@ class ModelConfig:
     (``fg_binary_weight``), saved in checkpoints. None = off (paper). A lever, not in any
     recipe: at the cpu scale it gave the rim back but lost small objects to the background,
     which paints them onto the floor (docs/notes/cpu_recipe.md)."""
+    fg_binary_all: bool = False
+    """With ``fg_binary``: every slot's half-transparent matter is priced, the background's
+    too (``f_i = 1``). Priced on the object slots alone, the floor is the one place where
+    matter is free, and an object painted onto it costs nothing but its parallax; priced
+    everywhere, a painted object pays for the floor's surface as a solid object pays for
+    its own. False = the object slots' share only. Not measured yet."""
 
     slot_locality_narrow: tuple[float, float, float] | None = None
     """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
@@ -560,6 +566,11 @@ class ModelConfig:
                     "ModelConfig.fg_binary must be (lambda, p0, p1) with lambda >= 0 and "
                     f"0 <= p0 <= p1 <= 1 (fractions of the run), got {self.fg_binary}"
                 )
+        if self.fg_binary_all and self.fg_binary is None:
+            raise ValueError(
+                "ModelConfig.fg_binary_all widens fg_binary's price to every slot: it needs "
+                "fg_binary=(lambda, p0, p1)"
+            )
         halo = self.fg_mass_halo
         if halo is not None and (self.fg_mass is None or not self.bg_outside_fg or not halo > 0):
             raise ValueError(
@@ -697,7 +708,7 @@ _OMITTED_WHEN_NONE = (
     "fg_mass_halo",
     "fg_binary",
 )
-_OMITTED_WHEN_FALSE = ("bg_achromatic", "clip_floor_front", "slot_locality_xy")
+_OMITTED_WHEN_FALSE = ("bg_achromatic", "clip_floor_front", "slot_locality_xy", "fg_binary_all")
 
 
 def _check_choice(name: str, value: object, literal: object) -> None:

@@ -377,7 +377,10 @@ class SVORF(nn.Module):
             bg_rgb = background_colour(q.sigma, q.rgb, q.m, t, is_bg, marcher.last_delta)
         soft = None
         if need_aux and cfg.fg_binary is not None:
-            share = 1.0 - (q.m * is_bg[:, None, None, :].to(q.m.dtype)).sum(dim=-1)
+            if cfg.fg_binary_all:  # every slot's matter, the background's too
+                share = torch.ones_like(q.sigma)
+            else:
+                share = 1.0 - (q.m * is_bg[:, None, None, :].to(q.m.dtype)).sum(dim=-1)
             soft = soft_matter(q.sigma, t, far_r, share)
         return RenderOutput(
             rgb, depth, acc, slot_probs, connectivity, p.coarse_rgb, bg_rgb, soft

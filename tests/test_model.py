@@ -1007,6 +1007,25 @@ def test_fg_binary_prices_soft_object_matter(tmp_path):
         model.loss(no_aux, target)
 
 
+def test_fg_binary_all_prices_the_background_too():
+    """fg_binary_all: the same price with every sample's share 1, so it is at least the
+    object-only price of the same render; off by default (key left out); needs fg_binary."""
+    assert "fg_binary_all" not in ModelConfig().to_dict()
+    o, d = make_rays(2, 32)
+    images = make_images(2)
+    part = smoke(fg_binary=(0.5, 0.0, 0.0))
+    full = smoke(fg_binary=(0.5, 0.0, 0.0), fg_binary_all=True)
+    assert ModelConfig.from_dict(full.cfg.to_dict()).fg_binary_all is True
+    full.load_state_dict(part.state_dict())
+    torch.manual_seed(0)
+    a = float(part(images, o, d).soft_matter.detach())
+    torch.manual_seed(0)
+    b = float(full(images, o, d).soft_matter.detach())
+    assert b > a > 0.0
+    with pytest.raises(ValueError, match="fg_binary_all"):
+        ModelConfig(fg_binary_all=True)
+
+
 def test_background_colour_renders_the_scene_without_the_object_region():
     """background_colour: the composed field with each point's density scaled by the
     background's mask, rendered as usual: a ray through a red object point (mask 0) in front
