@@ -26,6 +26,13 @@ def _check(weights: Tensor, edges: Tensor, name: str) -> None:
         )
 
 
+def _edges_to_far(t: Tensor, far_r: Tensor) -> Tensor:
+    """Interval edges [..., N+1] of sorted samples ``t`` [..., N] whose last interval ends
+    at the ray's far bound ``far_r`` [...] (float32; a far bound below t_N is raised to it)."""
+    edges = torch.cat([t.float(), far_r.float()[..., None]], dim=-1)
+    return torch.maximum(edges, torch.cummax(edges, dim=-1).values)
+
+
 def distortion_loss(weights: Tensor, edges: Tensor) -> Tensor:
     """Mip-NeRF 360 distortion loss per ray, O(N).
 
@@ -91,9 +98,7 @@ def connectivity_loss(
             f"connectivity_loss: expected t [B={B}, R={R}, N={N}] and far_r [B, R]; got "
             f"t {tuple(t.shape)}, far_r {tuple(far_r.shape)}"
         )
-    t32 = t.float()
-    edges = torch.cat([t32, far_r.float()[..., None]], dim=-1)  # [B, R, N+1]
-    edges = torch.maximum(edges, torch.cummax(edges, dim=-1).values)  # far_r >= t_N guard
+    edges = _edges_to_far(t, far_r)  # [B, R, N+1]
     delta = (edges[..., 1:] - edges[..., :-1])[:, None]  # [B, 1, R, N]
     w = render_weights(sigma_k, delta)  # [B, K, R, N]
     s = ((edges - near) / (far - near))[:, None].expand(B, K, R, N + 1)
@@ -156,8 +161,7 @@ def soft_matter(sigma: Tensor, t: Tensor, far_r: Tensor, share: Tensor) -> Tenso
             f"{tuple(sigma.shape)}, t {tuple(t.shape)}, share {tuple(share.shape)}, far_r "
             f"{tuple(far_r.shape)}"
         )
-    edges = torch.cat([t.float(), far_r.float()[..., None]], dim=-1)
-    edges = torch.maximum(edges, torch.cummax(edges, dim=-1).values)  # far_r >= t_N guard
+    edges = _edges_to_far(t, far_r)
     delta = edges[..., 1:] - edges[..., :-1]
     alpha = 1.0 - torch.exp(-sigma.float().clamp(0.0, SIGMA_GUARD) * delta)
     return (share.float() * alpha * (1.0 - alpha)).sum(dim=-1).mean()

@@ -496,8 +496,8 @@ class SVORF(nn.Module):
         """Tell the model how far its training run is (a fraction in [0, 1], as for the
         learning-rate schedule); sets what depends on it (``bg_chroma_fade``'s ``bg_chroma``
         buffer, ``slot_locality_narrow``'s ``locality_radius``, ``fg_mass``'s
-        ``fg_mass_weight``, ``fg_binary``'s ``fg_binary_weight``). The training loop calls it before every step; a no-op without
-        such fields."""
+        ``fg_mass_weight``, ``fg_binary``'s ``fg_binary_weight``). The training loop calls
+        it before every step; a no-op without such fields."""
         fade = self.cfg.bg_chroma_fade
         if fade is not None:
             self.bg_chroma.fill_(1.0 - _ramp(progress, *fade))
