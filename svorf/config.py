@@ -333,7 +333,17 @@ class ModelConfig:
     too (``f_i = 1``). Priced on the object slots alone, the floor is the one place where
     matter is free, and an object painted onto it costs nothing but its parallax; priced
     everywhere, a painted object pays for the floor's surface as a solid object pays for
-    its own. False = the object slots' share only. Not measured yet."""
+    its own. False = the object slots' share only. A lever, not in any recipe: at the cpu
+    scale it kept more small objects than the object-only price but still lost FG-ARI, and
+    it thinned the floor beyond the sample box (docs/notes/cpu_recipe.md)."""
+    fg_binary_length: float | None = None
+    """With ``fg_binary``: each sample's opacity is taken over this fixed length (world
+    units) instead of its own interval, and its term weighted by interval / length, so the
+    price is the line integral of soft matter and does not depend on where the samples
+    fall. Per interval, the fine samples' short intervals crowd at surfaces and make dense
+    matter look half-transparent, so a solid surface pays too; over a fixed length of
+    about a pixel's footprint only thin matter does. None = per interval. Not measured
+    yet."""
 
     slot_locality_narrow: tuple[float, float, float] | None = None
     """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
@@ -566,6 +576,14 @@ class ModelConfig:
                     "ModelConfig.fg_binary must be (lambda, p0, p1) with lambda >= 0 and "
                     f"0 <= p0 <= p1 <= 1 (fractions of the run), got {self.fg_binary}"
                 )
+        if self.fg_binary_length is not None and (
+            self.fg_binary is None or not self.fg_binary_length > 0
+        ):
+            raise ValueError(
+                "ModelConfig.fg_binary_length must be a length > 0 (world units) and needs "
+                f"fg_binary=(lambda, p0, p1); got {self.fg_binary_length} with fg_binary "
+                f"{self.fg_binary}"
+            )
         if self.fg_binary_all and self.fg_binary is None:
             raise ValueError(
                 "ModelConfig.fg_binary_all widens fg_binary's price to every slot: it needs "
@@ -707,6 +725,7 @@ _OMITTED_WHEN_NONE = (
     "fg_mass",
     "fg_mass_halo",
     "fg_binary",
+    "fg_binary_length",
 )
 _OMITTED_WHEN_FALSE = ("bg_achromatic", "clip_floor_front", "slot_locality_xy", "fg_binary_all")
 

@@ -142,7 +142,9 @@ def object_mass(acc: Tensor, slot_probs: Tensor | None, gate: Tensor | None = No
     return mass.mean() if gate is None else (mass * gate).mean()
 
 
-def soft_matter(sigma: Tensor, t: Tensor, far_r: Tensor, share: Tensor) -> Tensor:
+def soft_matter(
+    sigma: Tensor, t: Tensor, far_r: Tensor, share: Tensor, length: float | None = None
+) -> Tensor:
     """Mean over rays of ``sum_i share_i alpha_i (1 - alpha_i)``: how much half-transparent
     matter the rays meet (``ModelConfig.fg_binary`` puts a price on it). 0 for empty space
     and for solid matter alike.
@@ -152,6 +154,11 @@ def soft_matter(sigma: Tensor, t: Tensor, far_r: Tensor, share: Tensor) -> Tenso
         far_r: [B, R] each ray's far bound (the last interval ends there, as in
             :func:`connectivity_loss`).
         share: [B, R, N] the object slots' share of each point (``1 - m_bg``).
+        length: None = ``alpha_i`` is sample ``i``'s opacity over its own interval
+            ``delta_i``. A length ``L`` = ``alpha_i = 1 - exp(-sigma_i L)`` and each term
+            is weighted by ``delta_i / L``: the line integral of soft matter in units of
+            ``L``, which does not depend on where the samples fall (fine samples crowd at
+            surfaces, where short intervals make even dense matter look half-transparent).
     Returns:
         scalar float32 tensor.
     """
@@ -163,8 +170,12 @@ def soft_matter(sigma: Tensor, t: Tensor, far_r: Tensor, share: Tensor) -> Tenso
         )
     edges = _edges_to_far(t, far_r)
     delta = edges[..., 1:] - edges[..., :-1]
-    alpha = 1.0 - torch.exp(-sigma.float().clamp(0.0, SIGMA_GUARD) * delta)
-    return (share.float() * alpha * (1.0 - alpha)).sum(dim=-1).mean()
+    sig = sigma.float().clamp(0.0, SIGMA_GUARD)
+    if length is None:
+        alpha = 1.0 - torch.exp(-sig * delta)
+        return (share.float() * alpha * (1.0 - alpha)).sum(dim=-1).mean()
+    alpha = 1.0 - torch.exp(-sig * length)
+    return (share.float() * alpha * (1.0 - alpha) * (delta / length)).sum(dim=-1).mean()
 
 
 def halo_gate(bg_rgb: Tensor | None, target: Tensor, tau: float) -> Tensor:

@@ -381,7 +381,7 @@ class SVORF(nn.Module):
                 share = torch.ones_like(q.sigma)
             else:
                 share = 1.0 - (q.m * is_bg[:, None, None, :].to(q.m.dtype)).sum(dim=-1)
-            soft = soft_matter(q.sigma, t, far_r, share)
+            soft = soft_matter(q.sigma, t, far_r, share, cfg.fg_binary_length)
         return RenderOutput(
             rgb, depth, acc, slot_probs, connectivity, p.coarse_rgb, bg_rgb, soft
         )  # fmt: skip

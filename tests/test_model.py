@@ -1026,6 +1026,48 @@ def test_fg_binary_all_prices_the_background_too():
         ModelConfig(fg_binary_all=True)
 
 
+def test_soft_matter_over_a_fixed_length_is_a_line_integral():
+    """soft_matter(length=L): alpha over L, each term weighted by delta / L. Splitting an
+    interval of uniform matter in two leaves the price unchanged (per interval it grows);
+    dense matter in short intervals is free over L (per interval it is not); empty space is
+    free; fg_binary_length reaches the model and is refused without fg_binary or <= 0."""
+    from svorf.losses import soft_matter
+
+    far = torch.tensor([[4.0]])
+    one3, one4 = torch.ones(1, 1, 3), torch.ones(1, 1, 4)
+    sig3 = torch.full((1, 1, 3), math.log(2.0) / 0.5)  # alpha over L = 0.5 is 1/2
+    sig4 = torch.full((1, 1, 4), math.log(2.0) / 0.5)
+    t3 = torch.tensor([[[1.0, 2.0, 3.0]]])
+    t4 = torch.tensor([[[1.0, 1.5, 2.0, 3.0]]])  # the first interval split in two
+    a = float(soft_matter(sig3, t3, far, one3, 0.5))
+    assert a == pytest.approx(0.25 * 3 * 2.0)  # 3 intervals of length 1 = 2 L each
+    assert float(soft_matter(sig4, t4, far, one4, 0.5)) == pytest.approx(a)
+    assert float(soft_matter(sig4, t4, far, one4)) > float(soft_matter(sig3, t3, far, one3))
+    # Dense matter (alpha 0.9999 over L) crossed in short intervals of 0.05.
+    t_fine = torch.tensor([[[1.0, 1.05, 1.10]]])
+    dense = torch.full((1, 1, 3), 9.2 / 0.5)
+    near_far = torch.tensor([[1.15]])
+    assert float(soft_matter(dense, t_fine, near_far, one3, 0.5)) < 1e-3
+    assert float(soft_matter(dense, t_fine, near_far, one3)) > 0.4
+    assert float(soft_matter(torch.zeros(1, 1, 3), t3, far, one3, 0.5)) == 0.0
+    assert "fg_binary_length" not in ModelConfig().to_dict()
+    cfg = ModelConfig(fg_binary=(0.5, 0.0, 0.0), fg_binary_length=0.1)
+    assert ModelConfig.from_dict(cfg.to_dict()).fg_binary_length == 0.1
+    o, d = make_rays(2, 32)
+    images = make_images(2)
+    per_interval = smoke(fg_binary=(0.5, 0.0, 0.0))
+    fixed = smoke(fg_binary=(0.5, 0.0, 0.0), fg_binary_length=0.1)
+    fixed.load_state_dict(per_interval.state_dict())
+    torch.manual_seed(0)
+    x = float(per_interval(images, o, d).soft_matter.detach())
+    torch.manual_seed(0)
+    y = float(fixed(images, o, d).soft_matter.detach())
+    assert y > 0.0 and y != pytest.approx(x)
+    for bad in ({"fg_binary_length": 0.1}, {"fg_binary": (0.5, 0, 0), "fg_binary_length": 0}):
+        with pytest.raises(ValueError, match="fg_binary_length"):
+            ModelConfig(**bad)
+
+
 def test_background_colour_renders_the_scene_without_the_object_region():
     """background_colour: the composed field with each point's density scaled by the
     background's mask, rendered as usual: a ray through a red object point (mask 0) in front
