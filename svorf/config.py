@@ -326,8 +326,9 @@ class ModelConfig:
     slots. Unlike ``fg_mass`` an object pays nothing for being there, only for a soft edge,
     so small solid objects are not priced out. The current weight is a model buffer
     (``fg_binary_weight``), saved in checkpoints. None = off (paper). A lever, not in any
-    recipe: at the cpu scale it gave the rim back but lost small objects to the background,
-    which paints them onto the floor (docs/notes/cpu_recipe.md)."""
+    recipe: at the cpu scale, ramped from 0.4 of the run, it gave the rim back but lost small
+    objects to the background, which paints them onto the floor; ramped from 0.8 it kept
+    the objects and lifted ARI at one seed, at some FG-ARI (docs/notes/cpu_recipe.md)."""
     fg_binary_all: bool = False
     """With ``fg_binary``: every slot's half-transparent matter is priced, the background's
     too (``f_i = 1``). Priced on the object slots alone, the floor is the one place where
