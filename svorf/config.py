@@ -320,31 +320,25 @@ class ModelConfig:
     the composed field's opacity of sample ``i`` (fine pass, intervals to the ray's far
     bound), ``f_i`` the object slots' share of that point (``1 - m_bg``), and ``w`` ramped
     as for ``fg_mass`` (0 before ``p0``, ``lambda`` from ``p1`` on). Empty space and solid
-    matter cost nothing; only half-transparent matter does. A halo of thin object density
-    beside an object is half-transparent everywhere, and a ray that grazes it gathers enough
-    of it to be claimed for the object: that is the rim of floor the masks give to object
-    slots. Unlike ``fg_mass`` an object pays nothing for being there, only for a soft edge,
-    so small solid objects are not priced out. The current weight is a model buffer
-    (``fg_binary_weight``), saved in checkpoints. None = off (paper). A lever, not in any
-    recipe: at the cpu scale, ramped from 0.4 of the run, it gave the rim back but lost small
-    objects to the background, which paints them onto the floor; ramped from 0.8 it kept
-    the objects and lifted ARI at one seed, at some FG-ARI (docs/notes/cpu_recipe.md)."""
+    matter cost nothing. A halo of thin object density beside an object, which a grazing
+    ray gathers into the rim of floor the masks give to object slots, is half-transparent
+    everywhere; unlike ``fg_mass`` an object pays nothing for being there. The weight is a
+    model buffer (``fg_binary_weight``), saved in checkpoints. None = off (paper). A lever,
+    not in any recipe: at the cpu scale, ramped from 0.4 of the run, it gave the rim back
+    but lost small objects to the background; ramped from 0.8 it kept the objects and
+    lifted ARI at one seed, at some FG-ARI (docs/notes/cpu_recipe.md)."""
     fg_binary_all: bool = False
     """With ``fg_binary``: every slot's half-transparent matter is priced, the background's
-    too (``f_i = 1``). Priced on the object slots alone, the floor is the one place where
-    matter is free, and an object painted onto it costs nothing but its parallax; priced
-    everywhere, a painted object pays for the floor's surface as a solid object pays for
-    its own. False = the object slots' share only. A lever, not in any recipe: at the cpu
-    scale it kept more small objects than the object-only price but still lost FG-ARI, and
-    it thinned the floor beyond the sample box (docs/notes/cpu_recipe.md)."""
+    too (``f_i = 1``), so that an object painted onto the floor is not free. False = the
+    object slots' share only. A lever, not in any recipe: at the cpu scale it kept more
+    small objects than the object-only price but still lost FG-ARI, and it thinned the
+    floor beyond the sample box (docs/notes/cpu_recipe.md)."""
     fg_binary_length: float | None = None
     """With ``fg_binary``: each sample's opacity is taken over this fixed length (world
-    units) instead of its own interval, and its term weighted by interval / length, so the
-    price is the line integral of soft matter and does not depend on where the samples
-    fall. Per interval, the fine samples' short intervals crowd at surfaces and make dense
-    matter look half-transparent, so a solid surface pays too; over a fixed length of
-    about a pixel's footprint only thin matter does. None = per interval. Not measured
-    yet."""
+    units) instead of its own interval, and its term weighted by interval / length: the
+    line integral of soft matter, whatever the sampling (per interval, the fine samples'
+    short intervals at a surface make dense matter look half-transparent). None = per
+    interval. Not measured yet."""
 
     slot_locality_narrow: tuple[float, float, float] | None = None
     """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
@@ -577,13 +571,11 @@ class ModelConfig:
                     "ModelConfig.fg_binary must be (lambda, p0, p1) with lambda >= 0 and "
                     f"0 <= p0 <= p1 <= 1 (fractions of the run), got {self.fg_binary}"
                 )
-        if self.fg_binary_length is not None and (
-            self.fg_binary is None or not self.fg_binary_length > 0
-        ):
+        length = self.fg_binary_length
+        if length is not None and (self.fg_binary is None or not length > 0):
             raise ValueError(
-                "ModelConfig.fg_binary_length must be a length > 0 (world units) and needs "
-                f"fg_binary=(lambda, p0, p1); got {self.fg_binary_length} with fg_binary "
-                f"{self.fg_binary}"
+                f"ModelConfig.fg_binary_length must be a length > 0 (world units) and needs "
+                f"fg_binary=(lambda, p0, p1); got {length} with fg_binary {self.fg_binary}"
             )
         if self.fg_binary_all and self.fg_binary is None:
             raise ValueError(
