@@ -11,7 +11,8 @@ holds. Every name is re-exported by ``svorf.train``, the old home of these names
 generator's states), ``model_config`` / ``train_config`` as JSON dicts, ``dataset``
 (fingerprint, root, scene count, image size, preset), ``wall_s``, ``loss``,
 ``torch_version``, and when used ``error_map`` (the ``"error_driven"`` ray sampling's
-state) and ``init_from``. It is written atomically (temp file + ``os.replace``), so the
+state), ``init_from`` and ``model_ema`` (the moving average of ``TrainConfig.ema_decay``, a
+state dict of the model). It is written atomically (temp file + ``os.replace``), so the
 file on disk is always the last good state.
 """
 
@@ -36,6 +37,7 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "CHECKPOINT_NAME",
     "RENDER_PROBE_FIELDS",
+    "WEIGHTS",
     "CheckpointError",
     "RunInfo",
     "atomic_torch_save",
@@ -165,6 +167,7 @@ def write_checkpoint(
     loss: float,
     error_map: ErrorMap | None = None,
     init_from: dict[str, Any] | None = None,
+    model_ema: dict[str, Any] | None = None,
 ) -> None:
     """Write the run's state after ``step`` optimizer steps to ``path`` (atomically).
 
@@ -175,6 +178,7 @@ def write_checkpoint(
         wall_s: the run's training wall time so far; loss: the last step's loss.
         error_map: the ``"error_driven"`` ray sampling's state, when used.
         init_from: what :func:`init_weights_from` loaded at step 0, when used.
+        model_ema: the averaged weights (a model state dict), when kept.
     """
     atomic_torch_save(
         {
@@ -191,6 +195,7 @@ def write_checkpoint(
             "torch_version": str(torch.__version__),
             **({"error_map": error_map.state_dict()} if error_map is not None else {}),
             **({"init_from": init_from} if init_from else {}),
+            **({"model_ema": model_ema} if model_ema is not None else {}),
         },
         path,
     )
@@ -270,32 +275,57 @@ class RunInfo:
     dataset: dict[str, Any]
     """``fingerprint``, ``root``, ``n_scenes``, ``image_hw`` of the training data."""
     wall_s: float
+    weights: str = "raw"
+    """Which weights the model holds: "raw" (the optimizer's) or "ema" (their average)."""
+
+
+#: ``load_run``'s choices of weights: the average when the run kept one ("auto"), the
+#: optimizer's weights ("raw"), or the average, required ("ema").
+WEIGHTS = ("auto", "raw", "ema")
 
 
 def load_run(
-    run_dir: str | os.PathLike, device: str | torch.device = "cpu"
+    run_dir: str | os.PathLike, device: str | torch.device = "cpu", weights: str = "auto"
 ) -> tuple[SVORF, RunInfo]:
     """Load the latest checkpoint of a run folder.
+
+    Args:
+        weights: a name in :data:`WEIGHTS`; a run trained with ``TrainConfig.ema_decay``
+            is evaluated with its moving average unless "raw" is asked for.
 
     Returns:
         ``(model, info)``: the model in eval mode on ``device``, and its configs.
 
     Raises:
-        CheckpointError: the checkpoint is missing, corrupt or of another format (one line).
+        CheckpointError: the checkpoint is missing, corrupt or of another format, or
+            "ema" is asked of a run without an average (one line).
     """
+    if weights not in WEIGHTS:
+        raise ValueError(f"load_run: weights must be one of {list(WEIGHTS)}, got {weights!r}")
     path = Path(run_dir) / CHECKPOINT_NAME
     ckpt = read_checkpoint(path)
+    ema = ckpt.get("model_ema")
+    if weights == "ema" and ema is None:
+        raise CheckpointError(
+            f"{path}: holds no averaged weights (trained without ema_decay); use the raw weights"
+        )
+    use_ema = ema is not None and weights != "raw"
     try:
         mcfg = ModelConfig.from_dict(ckpt["model_config"])
         tcfg = TrainConfig.from_dict(ckpt["train_config"])
         model = SVORF(mcfg)
-        model.load_state_dict(ckpt["model"])
+        model.load_state_dict(ema if use_ema else ckpt["model"])
     except (ValueError, RuntimeError, TypeError) as e:
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise CheckpointError(f"{path}: checkpoint does not match this code ({msg[:160]})") from e
     model.to(torch.device(device) if isinstance(device, str) else device).eval()
     info = RunInfo(
-        mcfg, tcfg, int(ckpt["step"]), dict(ckpt.get("dataset", {})), float(ckpt.get("wall_s", 0.0))
+        mcfg,
+        tcfg,
+        int(ckpt["step"]),
+        dict(ckpt.get("dataset", {})),
+        float(ckpt.get("wall_s", 0.0)),
+        "ema" if use_ema else "raw",
     )
     return model, info
 

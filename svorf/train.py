@@ -77,7 +77,7 @@ from svorf.checkpoint import (
 from svorf.config import ModelConfig, bf16_autocast_on
 from svorf.data import MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
-from svorf.optim import grad_norm, make_optimizer
+from svorf.optim import WeightAverage, grad_norm, make_optimizer
 from svorf.predict import ScenePrediction, default_eval, predict_scene
 from svorf.ray_sampling import ErrorMap
 from svorf.train_config import (
@@ -366,6 +366,7 @@ class _Run:
     init_info: dict[str, Any] | None = None
     saved: int | None = None
     """The step of the checkpoint on disk, None before the first one."""
+    average: WeightAverage | None = None
 
 
 def _setup(
@@ -432,6 +433,8 @@ def _setup(
         model = distributed.prepare_model(model, device, dctx)
     opt = make_optimizer(model.parameters(), lr_at(train_cfg, 0), train_cfg.betas, device)
     out.mkdir(parents=True, exist_ok=True)
+    ema = train_cfg.ema_decay
+    average = WeightAverage(model.named_parameters(), ema) if ema else None
     return _Run(
         out=out,
         ckpt_path=ckpt_path,
@@ -453,6 +456,7 @@ def _setup(
         gen=gen,
         model=model,
         opt=opt,
+        average=average,
     )
 
 
@@ -494,6 +498,8 @@ def _start(
             p.unlink(missing_ok=True)
     if init_from is not None and run.start == 0:
         run.init_info = init_weights_from(getattr(run.model, "module", run.model), init_from)
+        if run.average is not None:
+            run.average.load(run.model.state_dict())
     if run.dctx is not None:  # identical already (same seed / checkpoint); made certain here
         distributed.broadcast_module(run.model)
     if run.main:
@@ -520,6 +526,8 @@ def _resume(run: _Run, data_dir: str | os.PathLike) -> None:
     run.start, run.wall_offset = int(ckpt["step"]), float(ckpt.get("wall_s", 0.0))
     run.last_loss = float(ckpt.get("loss", math.nan))
     run.init_info = ckpt.get("init_from")
+    if run.average is not None:  # the checkpoint's average (none before ema_decay: the weights)
+        run.average.load(ckpt.get("model_ema") or run.model.state_dict())
     # The state now lives in model/optimizer; the checkpoint's own copy of the weights
     # would otherwise stay alive (a second copy of the model) for the whole run.
     del ckpt
@@ -623,6 +631,8 @@ def _train_step(
     gnorm = grad_norm(model.parameters())
     _guard_grad(run, done, loss, gnorm)
     opt.step()
+    if run.average is not None:
+        run.average.update(done)
     run.last_loss = float(loss.detach())
     return lr, parts, gnorm
 
@@ -731,6 +741,7 @@ def _save(run: _Run, step: int, wall: float) -> None:
         loss=run.last_loss,
         error_map=run.error_map,
         init_from=run.init_info,
+        model_ema=run.average.state_dict(run.model.state_dict()) if run.average else None,
     )
 
 

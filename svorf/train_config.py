@@ -108,6 +108,11 @@ class TrainConfig:
     sub-pixel detail of the evaluation resolution and a step costs the same (same rays,
     same encoder input). Evaluation and rendering stay at ``image_size``. None =
     ``image_size`` (the paper: one resolution). A lever (docs/notes/cpu_recipe.md)."""
+    ema_decay: float = 0.0
+    """Keep an exponential moving average of the weights with this per-step decay
+    (``svorf.optim.WeightAverage``; 0 = off, the paper). Training itself is unchanged;
+    checkpoints also hold the average (``model_ema``) and ``load_run`` evaluates it unless
+    asked for the raw weights, so one run scores both. A lever (docs/notes/cpu_recipe.md)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
@@ -135,6 +140,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
             raise ValueError(f"TrainConfig.betas must be two numbers in [0, 1), got {self.betas}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"TrainConfig.ema_decay must be in [0, 1), got {self.ema_decay}")
         if self.target_size is not None and int(self.target_size) < 8:
             raise ValueError(
                 f"TrainConfig.target_size must be None or >= 8 pixels, got {self.target_size}"
@@ -147,11 +154,14 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
-        ``target_size`` only when set, so that the keys of earlier runs stay valid."""
+        ``target_size`` and ``ema_decay`` only when set, so that the keys of earlier runs
+        stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         if d["target_size"] is None:
             del d["target_size"]
+        if not d["ema_decay"]:
+            del d["ema_decay"]
         return d
 
     @classmethod

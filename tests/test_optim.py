@@ -1,5 +1,6 @@
 """svorf.optim: the fused Adam of the training loop against per-tensor Adam, the gradient
-norm of the NaN guard against clip_grad_norm_, and speedbench's --optimizer timing."""
+norm of the NaN guard against clip_grad_norm_, speedbench's --optimizer timing, and the
+moving average of the weights against its formula."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 import torch
 
 from benchmark.tools import speedbench
-from svorf.optim import grad_norm, make_optimizer
+from svorf.optim import WeightAverage, grad_norm, make_optimizer
 
 
 def _net(seed: int = 0) -> torch.nn.Module:
@@ -96,3 +97,30 @@ def test_speedbench_optimizer_report(tmp_path):
     rc = speedbench.main([*small, "--threads", "1", "--optimizer", "--json", str(out)])
     assert rc == 0
     assert json.loads(out.read_text())["forms"][1]["name"] == "fused"
+
+
+def test_weight_average_follows_its_formula_and_round_trips():
+    net = _net()
+    net[0].bias.requires_grad_(False)  # frozen weights are not averaged
+    avg = WeightAverage(net.named_parameters(), 0.9)
+    assert avg.names == ["0.weight", "2.weight", "2.bias"]
+    ref = {n: p.detach().clone() for n, p in net.named_parameters() if p.requires_grad}
+    for t in (1, 2, 3, 40, 41):
+        with torch.no_grad():
+            for p in net.parameters():
+                p.add_(float(t))
+        avg.update(t)
+        d = min(0.9, (1 + t) / (10 + t))  # the warm-up: 0.2, 0.27, 0.31, then 0.9
+        params = dict(net.named_parameters())
+        ref = {n: d * r + (1 - d) * params[n].detach() for n, r in ref.items()}
+    state = avg.state_dict(net.state_dict())
+    for n, r in ref.items():
+        torch.testing.assert_close(state[n], r)
+        assert not torch.equal(state[n], net.state_dict()[n])
+    assert torch.equal(state["0.bias"], net.state_dict()["0.bias"])
+    other = WeightAverage(net.named_parameters(), 0.9)
+    other.load(state)
+    for a, b in zip(other.averages, avg.averages, strict=True):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="decay must be in"):
+        WeightAverage(net.named_parameters(), 1.0)

@@ -463,6 +463,14 @@ def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     assert main([*argv, "--render-set", "num_slots=3"]) == 2
     err = capsys.readouterr().err.strip()
     assert "num_slots cannot change at render time" in err and len(err.splitlines()) == 1
+    # The optimizer's weights beside the average; a run without an average has none.
+    assert main([*argv, "--scenes", "1", "--weights", "raw"]) == 0
+    assert json.loads((tmp_path / "r" / "failures-raw.json").read_text())["weights"] == "raw"
+    assert saved["weights"] == "raw"
+    capsys.readouterr()
+    assert main([*argv, "--scenes", "1", "--weights", "ema"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no averaged weights" in err and len(err.splitlines()) == 1
 
 
 def test_bg_pos_freqs_limits_only_the_background_slots_bandwidth():

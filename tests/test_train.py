@@ -145,6 +145,35 @@ def test_resume_matches_an_uninterrupted_run(split, tmp_path, ray_sampling):
     assert [r["loss"] for r in la] == [r["loss"] for r in lb]
 
 
+def test_weight_average_is_checkpointed_resumed_and_evaluated(split, tmp_path):
+    ema = {"ema_decay": 0.9}
+    full, part, plain = tmp_path / "full", tmp_path / "part", tmp_path / "plain"
+    train(split, full, MCFG, tcfg(**ema), progress=False)
+    train(split, part, MCFG, tcfg(steps=3, **ema), progress=False)
+    train(split, part, MCFG, tcfg(**ema), resume=True, progress=False)
+    a = torch.load(full / "checkpoint.pt", weights_only=True)
+    b = torch.load(part / "checkpoint.pt", weights_only=True)
+    for k, v in a["model_ema"].items():
+        assert torch.equal(v, b["model_ema"][k]), k
+    moved = [k for k, v in a["model"].items() if not torch.equal(v, a["model_ema"][k])]
+    assert moved  # the average is not the weights
+    avg, info = load_run(full)
+    raw, info_raw = load_run(full, weights="raw")
+    assert (info.weights, info_raw.weights) == ("ema", "raw")
+    for k in moved:
+        assert torch.equal(avg.state_dict()[k], a["model_ema"][k])
+        assert torch.equal(raw.state_dict()[k], a["model"][k])
+    # Without ema_decay: no average, the same config key as before the field existed.
+    train(split, plain, MCFG, tcfg(), progress=False)
+    assert "model_ema" not in torch.load(plain / "checkpoint.pt", weights_only=True)
+    assert load_run(plain)[1].weights == "raw"
+    with pytest.raises(CheckpointError, match="no averaged weights"):
+        load_run(plain, weights="ema")
+    assert "ema_decay" not in tcfg().to_dict() and tcfg(**ema).to_dict()["ema_decay"] == 0.9
+    with pytest.raises(ValueError, match="ema_decay must be in"):
+        tcfg(ema_decay=1.0)
+
+
 def test_resume_refuses_a_different_run(split, tmp_path):
     run = tmp_path / "run"
     train(split, run, MCFG, tcfg(steps=1), progress=False)

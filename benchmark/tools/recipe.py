@@ -53,7 +53,7 @@ from benchmark.tools.splits import split_geometry, summarize_splits
 from scenefmt import atomic_write_json
 from scenefmt.cli_util import USAGE, OneLineParser, doc_summary, fail
 from svorf.ari import adjusted_rand_index
-from svorf.checkpoint import render_probe
+from svorf.checkpoint import WEIGHTS, CheckpointError, render_probe
 from svorf.config import ModelConfig
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
@@ -702,6 +702,10 @@ def main(argv: list[str] | None = None) -> int:
                     "bg_outside_fg) or of the samples per ray (n_coarse, n_fine), "
                     "repeatable: a probe of where the errors live, written to "
                     "failures-probe.json")  # fmt: skip
+    dg.add_argument("--weights", choices=WEIGHTS, default="auto",
+                    help="auto: the moving average when the run kept one (ema_decay), else "
+                    "the optimizer's weights; raw: the optimizer's weights, written to "
+                    "failures-raw.json (default: auto)")  # fmt: skip
     pl = sub.add_parser("plot", help="loss and held-out FG-ARI of runs over wall time (PNG)")
     pl.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     pl.add_argument("--out", required=True, help="PNG path")
@@ -725,17 +729,23 @@ def main(argv: list[str] | None = None) -> int:
                     "pass --resume to continue it, or --out DIR to start a new run elsewhere")  # fmt: skip
     torch.set_num_threads(a.threads)
     if a.cmd == "diagnose":
-        model, info = load_run(Path(a.run))
+        try:
+            model, info = load_run(Path(a.run), weights=a.weights)
+        except CheckpointError as err:
+            return fail(_PROG, f"diagnose: {err}")
         probe = dict(_parse_set(x, "--render-set") for x in a.render_set)
         try:
             render_probe(model, probe)
         except ValueError as err:
             return fail(_PROG, f"diagnose --render-set: {err}")
         test = MultiViewDataset(a.test, image_size=model.cfg.image_size, max_scenes=a.scenes)
-        res = {"step": info.step, "render_set": probe, **failure_breakdown(model, test)}
+        res = {"step": info.step, "weights": info.weights, "render_set": probe}
+        res.update(failure_breakdown(model, test))
         if a.depth:
             res["depth"] = depth_breakdown(model, test)
         name = "failures-probe.json" if probe else "failures.json"
+        if a.weights == "raw" and not probe:
+            name = "failures-raw.json"
         atomic_write_json(Path(a.run) / name, res)
         if a.grid:
             res["grid"] = str(save_segmentation_grid(model, test, a.grid, a.grid_scenes))
