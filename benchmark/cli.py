@@ -304,6 +304,11 @@ def summary_lines(report: dict[str, Any], path: str | os.PathLike) -> list[str]:
             f"  {m['variant']} on {m['train_dataset']}: {b.get('steps_done')} steps, "
             f"{m['train_wall_s'] / 60.0:.1f} min training"
             + (f", stopped by {b['stopped_by']}" if b.get("stopped_by") else "")
+            + (
+                ", scored with its moving average of the weights"
+                if m.get("weights_scored") == "ema"
+                else ""
+            )
             + (f" (reused run {m['run_key']})" if m.get("reused") else "")
         )
     for r in report["rows"]:

@@ -78,6 +78,12 @@ class ModelRecord:
         v = self.summary.get("steps")
         return int(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
 
+    @property
+    def weights_scored(self) -> str:
+        """The weights the evaluation scores (``svorf.checkpoint.load_run``'s "auto"):
+        "ema", the moving average of a run trained with ``ema_decay``, else "raw"."""
+        return "ema" if float(self.train_config.get("ema_decay") or 0.0) > 0.0 else "raw"
+
     def budget_report(self) -> dict[str, Any]:
         """Steps done, training wall time and what stopped the run."""
         cap = int(self.train_config.get("steps") or 0)
@@ -107,6 +113,7 @@ class ModelRecord:
             "reused": self.reused,
             "train_wall_s": float(self.train_wall_s),
             "steps_done": self.steps_done,
+            "weights_scored": self.weights_scored,
             "config_source": self.config_source,
             "train_budget": self.budget_report(),
             "init_from": self.summary.get("init_from"),

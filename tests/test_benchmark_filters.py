@@ -64,6 +64,7 @@ def test_datasets_filter_keeps_only_the_named_dataset_and_says_what_it_left_out(
     (model,) = report["models"]
     assert model["config_source"] == "svorf.train.run_configs"
     assert model["steps_done"] == 2 and model["train_budget"]["stopped_by"] == "steps"
+    assert model["weights_scored"] == "raw"  # no ema_decay at smoke: the optimizer's weights
 
 
 @pytest.mark.parametrize(

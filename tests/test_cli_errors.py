@@ -266,7 +266,17 @@ def test_benchmark_summary_prints_each_thing_once(tmp_path):
             {**verdict, "table": "tab:supp_ablation"},
             {**verdict, "model": "sVORF (w/o NVS)", "table": "tab:ablation"},
         ],
-        "models": [],
+        "models": [
+            {
+                "variant": v,
+                "train_dataset": "clevr567/train",
+                "train_wall_s": 60.0,
+                "train_budget": {"steps_done": 10, "stopped_by": "steps"},
+                "weights_scored": w,
+                "run_key": "0123456789abcdef",
+            }
+            for v, w in (("full", "ema"), ("w/o NVS", "raw"))
+        ],
         "datasets": [
             {"name": n, "path": str(tmp_path / "data" / "smoke" / n), "generated_now": i == 0}
             for i, n in enumerate(("clevr567/test", "clevr567/train"))
@@ -275,6 +285,8 @@ def test_benchmark_summary_prints_each_thing_once(tmp_path):
     path = tmp_path / "reports" / "ablation-smoke" / "report.json"
     text = "\n".join(summary_lines(report, path))
     assert text.count("does NOT decompose") == 1
+    (ema,) = [line for line in text.splitlines() if "scored with its moving average" in line]
+    assert ema.startswith("  full on clevr567/train: 10 steps, 1.0 min training, stopped by steps")
     assert text.count("clevr567 / sVORF (ours)") == 1 and "sVORF (w/o NVS)" in text
     assert text.count(str(path)) == 1 and text.count("index.html") == 1
     assert f"data:   {tmp_path / 'data' / 'smoke' / 'clevr567'} (2 splits: generated now " in text
