@@ -3,7 +3,8 @@
 Where this sits: ``benchmark leaderboard DIR`` walks ``DIR`` for ``report.json``
 files (every protocol writes one), validates each against the schema, keeps the
 newest row per (protocol, scale, table, model, dataset, source, training seed of a
-measured row), and writes
+measured row), preferring a measured row whose model has the configs the recipe gives
+today (``current_recipe``) over a lever's or an older recipe's, and writes
 ``DIR/leaderboard.json``. The printed table puts every measured and baseline
 row under the paper's rows of the same table, formatted by :mod:`benchmark.display`
 and at most :data:`WIDTH` columns wide. ``leaderboard.json`` keeps the reports'
@@ -18,6 +19,7 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
+from benchmark import adapter
 from benchmark.display import (
     LEGEND,
     NULL,
@@ -32,7 +34,13 @@ from benchmark.paper_numbers import PAPER_TABLES
 from benchmark.report import utc_now, write_json
 from benchmark.schema import SchemaError, validate_report
 
-__all__ = ["LEADERBOARD_SCHEMA_VERSION", "WIDTH", "format_leaderboard", "merge_reports"]
+__all__ = [
+    "LEADERBOARD_SCHEMA_VERSION",
+    "WIDTH",
+    "current_recipe",
+    "format_leaderboard",
+    "merge_reports",
+]
 
 LEADERBOARD_SCHEMA_VERSION = "1.0"
 
@@ -52,10 +60,41 @@ def _budget(report: dict[str, Any]) -> str | None:
     return None if steps is None else f"{steps} steps"
 
 
-def _rank(entry: dict[str, Any]) -> tuple[bool, str]:
-    """Order of preference of two rows with the same key: measured numbers, then newest."""
+def _rank(entry: dict[str, Any]) -> tuple[bool, bool, str]:
+    """Order of preference of two rows with the same key: measured numbers, then the
+    current recipe's model (or not known), then newest."""
     has_value = any(v is not None for v in (entry.get("metrics") or {}).values())
-    return has_value, entry["created_utc"]
+    return has_value, entry.get("current_recipe") is not False, entry["created_utc"]
+
+
+#: Run fields that differ between runs of one recipe (the seed, the step limit).
+_PER_RUN = ("seed", "steps")
+
+
+def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
+    return json.loads(json.dumps(d))
+
+
+def current_recipe(report: dict[str, Any], row: dict[str, Any]) -> bool | None:
+    """Whether a measured row's model was trained with the configs that ``benchmark run``
+    gives its full model today (the model config and the learning fields of the train
+    config, seed and step limit aside). None where that cannot be told: not the full
+    model, no model entry, or a scale or preset svorf does not know."""
+    model = next(
+        (m for m in report.get("models") or [] if m.get("run_key") == row.get("run_key")), None
+    )
+    if model is None or model.get("variant") != "full" or row.get("variant") != "full":
+        return None
+    try:
+        mcfg, tcfg = adapter.base_configs(report["scale"], model["train_dataset"].split("/")[0])
+    except (ValueError, KeyError):
+        return None
+    train_now = {k: v for k, v in adapter.learning_fields(tcfg).items() if k not in _PER_RUN}
+    stored = model.get("train_config") or {}
+    train_then = {k: stored.get(k) for k in train_now}
+    return _jsonable(adapter.config_dict(mcfg)) == model.get("model_config") and _jsonable(
+        train_now
+    ) == _jsonable(train_then)
 
 
 def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]:
@@ -126,8 +165,11 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
                 seed=seed,
                 budget=budget,
             )
+            if src == "measured":
+                entry["current_recipe"] = current_recipe(report, row)
             # The newest row wins, except that a row without numbers (not trained, failed,
-            # data unavailable) never replaces one with numbers.
+            # data unavailable) never replaces one with numbers, and a lever's (or an older
+            # recipe's) model never replaces the current recipe's.
             old = best.get(key)
             if old is None or _rank(old) <= _rank(entry):
                 best[key] = entry
@@ -177,13 +219,15 @@ def _wrap(text: str, width: int, indent: str = "") -> list[str]:
 
 def _source(r: dict[str, Any]) -> str:
     """Who the row's numbers come from: ``paper``, ``cpu seed 0, 60 min`` (measured at a
-    scale, training seed and budget per model) or ``smoke baseline``."""
+    scale, training seed and budget per model; ``, earlier recipe`` where the model's
+    configs are not the ones the recipe gives today) or ``smoke baseline``."""
     if r["source"] == "paper":
         return "paper"
     if r["source"] == "baseline":
         return f"{r['scale']} baseline"
     label = f"{r['scale']} seed {r['seed']}" if r.get("seed") is not None else str(r["scale"])
-    return f"{label}, {r['budget']}" if r.get("budget") else label
+    label = f"{label}, {r['budget']}" if r.get("budget") else label
+    return f"{label}, earlier recipe" if r.get("current_recipe") is False else label
 
 
 def _grid(head: list[str], body: list[list[str]], right_from: int) -> list[str]:
@@ -300,8 +344,9 @@ def format_leaderboard(board: dict[str, Any], width: int = WIDTH) -> str:
             *_wrap(LEGEND, width),
             *_wrap(
                 "source: 'paper' = the paper's number; '<scale> seed N' = measured here at "
-                "that scale with training seed N; '<scale> baseline' = a chance baseline "
-                "computed here. An empty cell: the row has no such metric.",
+                "that scale with training seed N ('earlier recipe': a model whose configs "
+                "are not the ones `benchmark run` gives today); '<scale> baseline' = a "
+                "chance baseline computed here. An empty cell: the row has no such metric.",
                 width,
             ),
             "",

@@ -293,6 +293,52 @@ def test_leaderboard_keeps_rows_of_different_budgets_apart(tmp_path):
     assert "smoke seed 0, 60 min" in format_leaderboard(board)
 
 
+def _recipe_report(created: str, **train_changes) -> dict:
+    """A cpu-scale report whose measured row's model has the cpu recipe's configs for
+    CLEVR-567, with ``train_changes`` (a lever) applied to its train config."""
+    from benchmark import adapter
+
+    mcfg, tcfg = adapter.base_configs("cpu", "clevr567")
+    rep = _good_report(created=created)
+    rep["scale"] = "cpu"
+    row = next(r for r in rep["rows"] if r["source"] == "measured")
+    row["run_key"] = "ab" * 8
+    train = json.loads(json.dumps(adapter.config_dict(tcfg)))
+    train.update(seed=1, steps=1_000_000, **train_changes)
+    rep["models"] = [
+        {
+            "run_key": "ab" * 8,
+            "variant": "full",
+            "train_dataset": "clevr567/train",
+            "model_config": json.loads(json.dumps(adapter.config_dict(mcfg))),
+            "train_config": train,
+            "seed": 1,
+            "reused": False,
+            "train_wall_s": 1.0,
+        }
+    ]
+    return rep
+
+
+def test_leaderboard_prefers_the_current_recipe_over_a_newer_lever(tmp_path):
+    from benchmark.leaderboard import current_recipe
+
+    recipe = _recipe_report("2025-01-01T00:00:00Z")
+    lever = _recipe_report("2025-02-01T00:00:00Z", ema_decay=0.9995)
+    row = next(r for r in lever["rows"] if r["source"] == "measured")
+    assert current_recipe(recipe, row) is True and current_recipe(lever, row) is False
+    write_report(tmp_path / "lever" / "report.json", lever)
+    alone = [e for e in merge_reports(tmp_path)["entries"] if e["source"] == "measured"]
+    assert len(alone) == 1 and alone[0]["current_recipe"] is False
+    assert "earlier recipe" in format_leaderboard(merge_reports(tmp_path))
+    write_report(tmp_path / "recipe" / "report.json", recipe)
+    board = merge_reports(tmp_path)
+    measured = [e for e in board["entries"] if e["source"] == "measured"]
+    assert len(measured) == 1 and measured[0]["report"] == str(Path("recipe") / "report.json")
+    assert measured[0]["current_recipe"] is True
+    assert "cpu seed 0, earlier recipe" not in format_leaderboard(board)
+
+
 # ---------------------------------------------------------------------- evaluation
 
 
