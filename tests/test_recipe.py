@@ -61,9 +61,9 @@ def test_paper_scale_has_the_levers_off():
     mr2, tr2 = recipe_configs(levers=off, lr=1e-3)
     assert mr2.fg_zmin is None and tr2.nvs_warmup == 0 and tr2.lr == 1e-3
     assert mr2 == model_config("cpu")  # slot_locality off takes its narrowing with it
-    assert mr.slot_locality_narrow == (0.6, 0.3, 0.8) and mr2.slot_locality_narrow is None
+    assert mr.slot_locality_narrow == (0.5, 0.3, 0.8) and mr2.slot_locality_narrow is None
     kept = recipe_configs(levers={**off, "slot_locality": 0.8})[0]
-    assert kept.slot_locality == 0.8 and kept.slot_locality_narrow == (0.6, 0.3, 0.8)
+    assert kept.slot_locality == 0.8 and kept.slot_locality_narrow == (0.5, 0.3, 0.8)
     assert recipe_configs(warmup=5)[1].warmup == 5  # train overrides win over the levers
     # A model field the recipe does not name is a lever too: it reaches the ModelConfig,
     # not the TrainConfig (which would refuse it).
