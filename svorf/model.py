@@ -192,10 +192,16 @@ class SVORF(nn.Module):
             images = F.interpolate(
                 images, size=(s, s), mode="bilinear", align_corners=False, antialias=True
             )
+        if self.cfg.enc_bf16:  # the CNN under bf16 autocast where it is on; float32 out
+            with self._autocast(images.device):
+                feats = self.encoder(images)
+            feats = feats.float()
+        else:
+            feats = self.encoder(images)
         if not return_attn:
-            return self.slot_module(self.encoder(images))
+            return self.slot_module(feats)
         over = "slots" if self.cfg.slot_centre == "attention_slots" else "tokens"
-        return self.slot_module(self.encoder(images), return_attn=True, attn_over=over)
+        return self.slot_module(feats, return_attn=True, attn_over=over)
 
     def encode_for_render(self, images: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """(slots [B, K, D], the extra keyword arguments :meth:`render_rays` needs for them):

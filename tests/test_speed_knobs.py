@@ -13,6 +13,9 @@ Stated tolerances (checked here; measured values at cpu scale in the speedbench 
 - bf16_autocast vs float32, same weights, cpu-scale model at init: rgb max |diff| <= 1e-2,
   depth mean |diff| <= 1e-2 world units, slot_probs max |diff| <= 1e-2 (measured ~2e-3);
   transmittance, sampling and distortion cumsums all run in float32.
+- enc_bf16 (the encoder's CNN in bf16 too) with bf16_autocast vs float32, same weights, cpu
+  scale at init: rgb max <= 1e-2, depth mean <= 1e-2, slot_probs max <= 2e-2; with
+  bf16_autocast off it is bit-identical to float32.
 - slot_topk / slot_keep_mass, per sample point: |rgb - rgb_full| <= 1 - M and
   |sigma - sigma_full| <= (1 - M) max_k sigma_k, M = mass of the evaluated slots
   (slot_keep_mass=0.99 gives 1 - M <= 0.01 everywhere); one-hot masks: exact (1e-5).
@@ -322,6 +325,40 @@ def test_bf16_within_tolerance_at_cpu_scale_and_float32_cumsums(monkeypatch):
     assert 0 < rgb_err <= 1e-2
     assert (a.depth - b.depth).abs().mean().item() <= 1e-2
     assert (a.slot_probs - b.slot_probs).abs().max().item() <= 1e-2
+
+
+def test_enc_bf16_within_tolerance_and_only_where_bf16_is_on():
+    """enc_bf16: the encoder's CNN runs in bf16 where bf16_autocast is on and hands the slot
+    decoder a float32 map; within the bf16 tolerances of the whole model; bit-identical to
+    float32 where bf16_autocast is off; left out of the config dict while off."""
+    model, ref = model_pair("cpu", num_slots=8, bf16_autocast=True, enc_bf16=True)
+    dtypes = []
+    model.encoder.up3.register_forward_hook(lambda m, i, o: dtypes.append(o.dtype))
+    imgs = make_images(2, 64)
+    o, d = make_rays(2, 64)
+    with torch.no_grad():
+        feats = []
+        hook = model.slot_module.register_forward_pre_hook(lambda m, a: feats.append(a[0]))
+        a = model(imgs, o, d)
+        hook.remove()
+        b = ref(imgs, o, d)
+    assert dtypes == [torch.bfloat16] and feats[0].dtype == torch.float32
+    assert_finite(a)
+    assert 0 < (a.rgb - b.rgb).abs().max().item() <= 1e-2
+    assert (a.depth - b.depth).abs().mean().item() <= 1e-2
+    assert (a.slot_probs - b.slot_probs).abs().max().item() <= 2e-2
+    # gradients reach the float32 encoder weights, finite
+    a = model.train()(imgs, o, d)
+    a.rgb.square().mean().backward()
+    g = model.encoder.stem[0].weight.grad
+    assert (
+        g is not None and g.dtype == torch.float32 and torch.isfinite(g).all() and g.abs().sum() > 0
+    )
+    # bf16_autocast off: enc_bf16 changes nothing, bit for bit
+    off, ref = model_pair("cpu", num_slots=8, enc_bf16=True)
+    with torch.no_grad():
+        assert torch.equal(off(imgs, o, d).rgb, ref(imgs, o, d).rgb)
+    assert "enc_bf16" not in ref.cfg.to_dict() and off.cfg.to_dict()["enc_bf16"] is True
 
 
 # ----------------------------------------------------------------------------- slot selection

@@ -72,6 +72,7 @@ from svorf.render import clip_rays_to_box, sample_stratified
 # Every knob off: the paper's method at the scale's sizes.
 KNOBS_OFF: dict[str, Any] = {
     "bf16_autocast": False,
+    "enc_bf16": False,
     "fg_box": None,
     "slot_topk": 0,
     "slot_keep_mass": 1.0,
@@ -106,6 +107,7 @@ def default_variants(scale: str, sharpen: float = 8.0) -> list[Variant]:
     cfg = model_config(scale)  # type: ignore[arg-type]
     defaults = {k: getattr(cfg, k) for k in KNOBS_OFF}
     every = {"bf16_autocast": True, "fg_box": 3.75, "slot_topk": 2, "slot_keep_mass": 0.99}
+    dflt = {k: v for k, v in defaults.items() if KNOBS_OFF[k] != v}
     out = [
         Variant("original", {}, reference=True, paper_form_composer=True),
         Variant("baseline", {}),
@@ -115,14 +117,16 @@ def default_variants(scale: str, sharpen: float = 8.0) -> list[Variant]:
         Variant("topk=2", {"slot_topk": 2}),
         Variant("keep_mass=0.99", {"slot_keep_mass": 0.99}),
         Variant("all", every),
-        Variant("default", {k: v for k, v in defaults.items() if KNOBS_OFF[k] != v}),
+        Variant("default", dflt),
+        # the scale's defaults with the encoder's CNN in bf16 as well (a recipe lever)
+        Variant("default+enc_bf16", {**dflt, "bf16_autocast": True, "enc_bf16": True}),
     ]
     if sharpen != 1.0:
         out += [
             Variant("sharp-m baseline", {}, sharpen, reference=True),
             Variant("sharp-m topk=2", {"slot_topk": 2}, sharpen),
             Variant("sharp-m keep_mass=0.99", {"slot_keep_mass": 0.99}, sharpen),
-            Variant("sharp-m default", out[-1].overrides, sharpen),
+            Variant("sharp-m default", dflt, sharpen),
             Variant("sharp-m all", every, sharpen),
         ]
     return out
