@@ -186,20 +186,15 @@ class ModelConfig:
     # speeds from ``python -m benchmark.tools.speedbench``) ----
     bf16_autocast: bool | str = False
     """Run the hypernetwork, the per-point MLPs and the composition under bfloat16 autocast
-    (on CPUs with AVX-512 BF16 / AMX the matmuls are faster and every activation is half the
-    bytes). gamma(x), the softmax over slots, the composed field, transmittance (log-space
-    cumulative sums), importance sampling and the connectivity loss stay float32. Off =
-    float32 everywhere (paper). ``"auto"``: on only where the device has native bf16
-    (:func:`bf16_native`). On a CPU without it (e.g. AVX2 only) torch emulates bf16 and a
-    cpu-scale training step was measured 3-5x *slower* (``python -m
-    benchmark.tools.speedbench``), so ``"auto"`` is what the ``cpu`` scale ships."""
+    (faster matmuls and half-size activations on CPUs with AVX-512 BF16 / AMX). gamma(x), the
+    slot softmax, the composed field, transmittance (log-space cumsums), importance sampling
+    and the connectivity loss stay float32. Off = float32 everywhere (paper). ``"auto"``
+    (what the ``cpu`` scale ships): only where the device has native bf16 (:func:`bf16_native`;
+    where torch emulates it, e.g. AVX2 only, a cpu-scale step was measured 3-5x *slower*)."""
     enc_bf16: bool = False
-    """Run the image encoder's CNN under the same bf16 autocast (its convolutions in
-    bfloat16; the feature map goes to the slot decoder as float32). Takes effect only where
-    ``bf16_autocast`` is on (``"auto"``: native bf16 only), so elsewhere it changes nothing.
-    At 64x64 input the CNN is about half of a cpu-scale training step; on a CPU with AMX
-    its bf16 convolutions are faster (a recipe lever for steps per minute). Off = float32
-    CNN (paper)."""
+    """Run the image encoder's CNN under the same autocast, only where ``bf16_autocast`` is
+    on; the slot decoder gets a float32 map. At 64x64 the CNN is about half of a cpu-scale
+    step (a recipe lever for steps per minute). Off = float32 CNN (paper)."""
     fg_box: float | None = None
     """If set, foreground (object) fields are evaluated only inside [-fg_box, fg_box]^3 and
     have density 0 outside, where they are also left out of the composition (the background
@@ -744,16 +739,12 @@ def _check_choice(name: str, value: object, literal: object) -> None:
 
 @functools.cache
 def _cpu_has_native_bf16() -> bool:
-    flags: set[str] = set()
     try:
         with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    flags.update(line.split(":", 1)[1].split())
-                    break
+            flags = next((ln.split(":", 1)[1].split() for ln in f if ln.startswith("flags")), [])
     except OSError:  # not Linux: no way to tell here, so no
         return False
-    return bool(flags & {"avx512_bf16", "amx_bf16"})
+    return bool(set(flags) & {"avx512_bf16", "amx_bf16"})
 
 
 def bf16_native(device: Any) -> bool:
@@ -797,12 +788,10 @@ def model_config(
     gives what ``svorf train --scale S --preset P`` trains.
 
     Paper scale counts 49.53M parameters (K=8) against the paper's 48.73M (+1.6%): encoder
-    14.95M, slot decoder 12.88M, hypernetwork 21.45M, composition 0.24M. The paper leaves
-    open the decoder depth and FFN width (3 layers, 2048 here), the slot width (512), whether
-    gamma() contains the raw input (yes here), the composition width (128) and the
-    hypernetwork's form (one linear layer here). Dropping the raw input from gamma() would
-    save 0.2M; any other decoder depth moves the count by 4.2M per layer, so 3 layers is the
-    closest fit.
+    14.95M, slot decoder 12.88M, hypernetwork 21.45M, composition 0.24M. Left open by the
+    paper: decoder depth and FFN width (3 layers, 2048; another depth moves the count by
+    4.2M a layer), slot width (512), gamma() with the raw input (0.2M), composition width
+    (128), the hypernetwork's form (one linear layer).
     """
     if scale not in SCALES:
         raise ValueError(f"model_config: scale must be one of {SCALE_NAMES}, got {scale!r}")
