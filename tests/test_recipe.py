@@ -379,6 +379,41 @@ def test_rim_geometry_tells_an_offset_from_a_dilation():
         rim_geometry(gt[:2], gt, 3)
 
 
+def test_ring_colour_share_reads_the_object_colour_in_the_rim():
+    from benchmark.tools.rim import rim_geometry, ring_colour_share, summarize_rim
+
+    gt = torch.zeros(20, 20, dtype=torch.long)
+    gt[7:12, 7:12] = 1  # a 5x5 red object on a grey floor
+    gt[1:3, 16:18] = 2  # a 2x2 object: no interior, not measured
+    image = torch.full((20, 20, 3), 0.5)
+    image[gt == 1] = torch.tensor([1.0, 0.0, 0.0])
+    image[6, 7:12] = torch.tensor([0.75, 0.25, 0.25])  # the row above: half blended
+    pred = torch.full_like(gt, 3)
+    pred[6:13, 6:13] = 0  # object 1 grown by one pixel: its whole ring claimed
+    pred[12, 6:13] = 3  # ... except the row below
+    render = image.clone()
+    render[12, 6:13] = torch.tensor([1.0, 0.0, 0.0])  # the model paints that row red
+    rows = ring_colour_share(pred, gt, 3, image, render)
+    assert len(rows) == 24  # the 8-connected ring of object 1 only
+    blended = [r for r in rows if r[0] > 0.25]
+    assert len(blended) == 5 and all(r[0] == pytest.approx(0.5) and r[2] for r in blended)
+    unclaimed = [r for r in rows if not r[2]]
+    assert len(unclaimed) == 7 and all(
+        r[0] == 0.0 and r[1] == pytest.approx(1.0) for r in unclaimed
+    )
+    s = summarize_rim([rim_geometry(pred, gt, 3, image=image, render=render)])["ring_colour_share"]
+    assert s["claimed"]["pixels"] == 17 and s["unclaimed"]["pixels"] == 7
+    assert s["claimed"]["share_in_image_median"] == pytest.approx(0.0)
+    assert s["claimed"]["image_over_half"] == 0.0  # 0.5 is not over half
+    assert s["unclaimed"]["share_in_render_median"] == pytest.approx(1.0)
+    # an object of the floor's colour is not measured; without a render the share is nan
+    grey = image.clone()
+    grey[gt == 1] = 0.52
+    assert ring_colour_share(pred, gt, 3, grey) == []
+    assert math.isnan(ring_colour_share(pred, gt, 3, image)[0][1])
+    assert "ring_colour_share" not in summarize_rim([rim_geometry(pred, gt, 3)])
+
+
 def test_split_geometry_tells_top_and_bottom_from_side_by_side():
     from benchmark.tools.splits import split_geometry, summarize_splits
 

@@ -471,10 +471,11 @@ def failure_breakdown(
             raise ValueError(f"failure_breakdown: {ds.root} has no instance ids (truth=False)")
         labels, rgb = _render_input_view(model, ds, i, i, input_view)  # that view only
         gt = sv.instances[input_view]
-        err = (rgb - sv.images[input_view].permute(1, 2, 0)).abs().mean(-1)
+        image = sv.images[input_view].permute(1, 2, 0)
+        err = (rgb - image).abs().mean(-1)
         repairs.append(fg_ari_repairs(labels, gt, bg))
         ari_rows.append(ari_repairs(labels, gt, bg))
-        rims.append(rim_geometry(labels, gt, bg))
+        rims.append(rim_geometry(labels, gt, bg, image=image, render=rgb))
         splits.extend(split_geometry(labels, gt, bg))
         for r in object_failures(labels, gt, bg):
             r["err"] = float(err[gt == r["id"]].mean())
