@@ -342,6 +342,14 @@ class ModelConfig:
     short intervals at a surface make dense matter look half-transparent). None = per
     interval. Not measured yet."""
 
+    photo_l1: tuple[float, float] | None = None
+    """The photometric terms (fine and coarse) move from squared to absolute error between
+    progress ``p0`` and ``p1`` (``(p0, p1)``, ramped as ``fg_mass``): ``(1 - b) MSE + b s
+    L1`` with ``s = MSE / L1`` detached, so the term keeps MSE's value and takes L1's
+    gradient. In doubt about an object's edge, MSE renders the mean (a blurred edge, which
+    the masks turn into a rim of floor claimed by the object), L1 the median. The weight
+    ``b`` is a model buffer (``photo_l1_weight``). None = MSE (paper). A lever."""
+
     slot_locality_narrow: tuple[float, float, float] | None = None
     """``slot_locality``'s radius narrowed over training, ``(r_end, p0, p1)``: the radius is
     ``slot_locality`` until the run's progress reaches ``p0``, ``r_end`` from ``p1`` on,
@@ -403,36 +411,12 @@ class ModelConfig:
         object.__setattr__(self, "enc_blocks", tuple(int(b) for b in self.enc_blocks))
         if self.enc_up_kernel == 3:  # the paper's 3x3: one spelling, so one config key
             object.__setattr__(self, "enc_up_kernel", None)
-        if self.bg_chroma_fade is not None:  # JSON gives a list
-            if len(self.bg_chroma_fade) != 2:
-                raise ValueError(
-                    f"ModelConfig.bg_chroma_fade must be (p0, p1), got {self.bg_chroma_fade}"
-                )
-            object.__setattr__(self, "bg_chroma_fade", tuple(float(p) for p in self.bg_chroma_fade))
-        if self.slot_locality_narrow is not None:  # JSON gives a list
-            if len(self.slot_locality_narrow) != 3:
-                raise ValueError(
-                    "ModelConfig.slot_locality_narrow must be (r_end, p0, p1), got "
-                    f"{self.slot_locality_narrow}"
-                )
-            narrow = tuple(float(v) for v in self.slot_locality_narrow)
-            object.__setattr__(self, "slot_locality_narrow", narrow)
-        if self.fg_mass is not None:  # JSON gives a list
-            if len(self.fg_mass) != 3:
-                raise ValueError(
-                    f"ModelConfig.fg_mass must be (lambda, p0, p1), got {self.fg_mass}"
-                )
-            object.__setattr__(self, "fg_mass", tuple(float(v) for v in self.fg_mass))
-        if self.fg_binary is not None:  # JSON gives a list
-            if len(self.fg_binary) != 3:
-                raise ValueError(
-                    f"ModelConfig.fg_binary must be (lambda, p0, p1), got {self.fg_binary}"
-                )
-            object.__setattr__(self, "fg_binary", tuple(float(v) for v in self.fg_binary))
-        if self.box_z is not None:  # JSON gives a list
-            if len(self.box_z) != 2:
-                raise ValueError(f"ModelConfig.box_z must be (floor, ceiling), got {self.box_z}")
-            object.__setattr__(self, "box_z", tuple(float(z) for z in self.box_z))
+        for name, form in _TUPLES.items():  # JSON gives a list
+            v = getattr(self, name)
+            if v is not None:
+                if len(v) != form.count(",") + 1:
+                    raise ValueError(f"ModelConfig.{name} must be {form}, got {v}")
+                object.__setattr__(self, name, tuple(float(x) for x in v))
         _check_choice("composition", self.composition, Composition)
         _check_choice("slot_module", self.slot_module, SlotModule)
         _check_choice("enc_norm", self.enc_norm, EncoderNorm)
@@ -662,16 +646,9 @@ class ModelConfig:
         when set)."""
         d = dataclasses.asdict(self)
         d["enc_blocks"] = list(self.enc_blocks)
-        if self.box_z is not None:
-            d["box_z"] = list(self.box_z)
-        if self.bg_chroma_fade is not None:
-            d["bg_chroma_fade"] = list(self.bg_chroma_fade)
-        if self.slot_locality_narrow is not None:
-            d["slot_locality_narrow"] = list(self.slot_locality_narrow)
-        if self.fg_mass is not None:
-            d["fg_mass"] = list(self.fg_mass)
-        if self.fg_binary is not None:
-            d["fg_binary"] = list(self.fg_binary)
+        for name in _TUPLES:
+            if d[name] is not None:
+                d[name] = list(d[name])
         for name in _OMITTED_WHEN_NONE:  # off: not written, so keys of earlier runs stay valid
             if d[name] is None:
                 del d[name]
@@ -708,6 +685,16 @@ class ModelConfig:
 #: Fields read only at evaluation (no effect on training): left out of ``to_dict`` while off.
 #: Fields added after runs were cached: written by ``to_dict`` only when set (not None), so
 #: a run that leaves them off keeps the key it had before they existed.
+#: Tuple fields (JSON gives lists) and their form, for checks and messages.
+_TUPLES = {
+    "bg_chroma_fade": "(p0, p1)",
+    "slot_locality_narrow": "(r_end, p0, p1)",
+    "fg_mass": "(lambda, p0, p1)",
+    "fg_binary": "(lambda, p0, p1)",
+    "box_z": "(floor, ceiling)",
+    "photo_l1": "(p0, p1)",
+}
+
 _OMITTED_WHEN_NONE = (
     "eval_early_stop",
     "eval_fine_min_weight",
@@ -721,6 +708,7 @@ _OMITTED_WHEN_NONE = (
     "fg_mass_halo",
     "fg_binary",
     "fg_binary_length",
+    "photo_l1",
 )
 _OMITTED_WHEN_FALSE = (
     "bg_achromatic",

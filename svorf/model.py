@@ -168,6 +168,8 @@ class SVORF(nn.Module):
             self.register_buffer("fg_mass_weight", torch.zeros(()))
         if cfg.fg_binary is not None:  # the price on soft object matter now
             self.register_buffer("fg_binary_weight", torch.zeros(()))
+        if cfg.photo_l1 is not None:  # the absolute error's share of the photometric terms
+            self.register_buffer("photo_l1_weight", torch.zeros(()))
 
     # ------------------------------------------------------------------ encoding
     def encode(self, images: Tensor, return_attn: bool = False) -> Tensor | tuple[Tensor, Tensor]:
@@ -502,7 +504,8 @@ class SVORF(nn.Module):
         """Tell the model how far its training run is (a fraction in [0, 1], as for the
         learning-rate schedule); sets what depends on it (``bg_chroma_fade``'s ``bg_chroma``
         buffer, ``slot_locality_narrow``'s ``locality_radius``, ``fg_mass``'s
-        ``fg_mass_weight``, ``fg_binary``'s ``fg_binary_weight``). The training loop calls
+        ``fg_mass_weight``, ``fg_binary``'s ``fg_binary_weight``, ``photo_l1``'s
+        ``photo_l1_weight``). The training loop calls
         it before every step; a no-op without such fields."""
         fade = self.cfg.bg_chroma_fade
         if fade is not None:
@@ -517,6 +520,8 @@ class SVORF(nn.Module):
         if self.cfg.fg_binary is not None:
             lam, p0, p1 = self.cfg.fg_binary
             self.fg_binary_weight.fill_(lam * _ramp(progress, p0, p1))
+        if self.cfg.photo_l1 is not None:
+            self.photo_l1_weight.fill_(_ramp(progress, *self.cfg.photo_l1))
 
     def query_context(
         self,
@@ -713,10 +718,12 @@ class SVORF(nn.Module):
         cfg = self.cfg
         target = target_rgb.to(out.rgb.device, torch.float32)
         mse = F.mse_loss(out.rgb, target)
-        total = mse
         mse_c = F.mse_loss(out.coarse_rgb, target)
+        total = self._photometric(out.rgb, target, mse)
         if cfg.n_fine > 0 and cfg.coarse_loss_weight > 0:
-            total = total + cfg.coarse_loss_weight * mse_c
+            total = total + cfg.coarse_loss_weight * self._photometric(
+                out.coarse_rgb, target, mse_c
+            )
         if cfg.connectivity:
             total = total + cfg.connect_lambda * out.connectivity
         fg_mass = None
@@ -745,6 +752,16 @@ class SVORF(nn.Module):
         if cfg.fg_binary is not None:
             stats["soft_matter"] = out.soft_matter.detach()
         return total, stats
+
+    def _photometric(self, rgb: Tensor, target: Tensor, mse: Tensor) -> Tensor:
+        """The photometric term: ``mse``, or with ``ModelConfig.photo_l1`` its blend with
+        the absolute error scaled to ``mse``'s value (the scale carries no gradient)."""
+        if self.cfg.photo_l1 is None:
+            return mse
+        b = self.photo_l1_weight
+        l1 = F.l1_loss(rgb, target)
+        scaled = l1 * (mse.detach() / l1.detach().clamp_min(1e-12))
+        return (1.0 - b) * mse + b * scaled
 
     @torch.no_grad()
     def render_chunked(

@@ -1137,3 +1137,50 @@ def test_fg_mass_halo_prices_only_rays_the_background_explains():
         ModelConfig(fg_mass_halo=0.1, fg_mass=(0.5, 0.0, 0.0))
     with pytest.raises(ValueError, match="fg_mass_halo"):
         ModelConfig(fg_mass_halo=0.0, **kw)
+
+
+def test_photo_l1_moves_the_photometric_term_to_absolute_error():
+    """photo_l1=(p0, p1): the photometric terms blend from MSE (before p0) to an absolute
+    error scaled to MSE's value (from p1 on), so the loss's value is unchanged and its
+    gradient is the absolute error's; the stats stay MSE; off by default (key left out)."""
+    assert "photo_l1" not in ModelConfig().to_dict()
+    o, d = make_rays(2, 32)
+    images, target = make_images(2), torch.rand(2, 32, 3)
+    model = smoke(photo_l1=(0.2, 0.6))
+    assert ModelConfig.from_dict(model.cfg.to_dict()).photo_l1 == (0.2, 0.6)
+    plain = smoke()
+    plain.load_state_dict({k: v for k, v in model.state_dict().items() if k != "photo_l1_weight"})
+
+    def loss_and_grad(m, progress=None):
+        if progress is not None:
+            m.set_progress(progress)
+        m.zero_grad()
+        torch.manual_seed(0)
+        out = m(images, o, d)
+        total, parts = m.loss(out, target)
+        total.backward()
+        g = torch.cat([p.grad.flatten() for p in m.parameters() if p.grad is not None])
+        return float(total.detach()), parts, g, out
+
+    base, base_parts, g_mse, _ = loss_and_grad(plain)
+    for progress, b in ((0.0, 0.0), (0.4, 0.5), (0.9, 1.0)):
+        total, parts, g, out = loss_and_grad(model, progress)
+        assert float(model.photo_l1_weight) == pytest.approx(b)
+        assert total == pytest.approx(base, rel=1e-5)  # the value stays MSE's
+        assert float(parts["mse"]) == pytest.approx(float(base_parts["mse"]), rel=1e-6)
+        if b == 0.0:
+            assert torch.allclose(g, g_mse, atol=1e-7)
+        if b == 1.0:
+            # the gradient is the absolute error's, scaled by MSE / L1 (fine + coarse)
+            assert not torch.allclose(g, g_mse, atol=1e-6)
+            dr = torch.autograd.grad(
+                model._photometric(out.rgb, target, F.mse_loss(out.rgb, target)),
+                out.rgb,
+                retain_graph=True,
+            )[0]
+            l1 = F.l1_loss(out.rgb, target)
+            scale = float((F.mse_loss(out.rgb, target) / l1).detach())
+            expect = torch.sign(out.rgb - target) * scale / out.rgb.numel()
+            assert torch.allclose(dr, expect, atol=1e-9)
+    with pytest.raises(ValueError, match="photo_l1 must be"):
+        ModelConfig(photo_l1=(0.2,))
