@@ -682,9 +682,6 @@ class ModelConfig:
         return dataclasses.replace(self, **changes)
 
 
-#: Fields read only at evaluation (no effect on training): left out of ``to_dict`` while off.
-#: Fields added after runs were cached: written by ``to_dict`` only when set (not None), so
-#: a run that leaves them off keeps the key it had before they existed.
 #: Tuple fields (JSON gives lists) and their form, for checks and messages.
 _TUPLES = {
     "bg_chroma_fade": "(p0, p1)",
@@ -695,6 +692,9 @@ _TUPLES = {
     "photo_l1": "(p0, p1)",
 }
 
+#: Fields read only at evaluation (no effect on training): left out of ``to_dict`` while off.
+#: Fields added after runs were cached: written by ``to_dict`` only when set (not None), so
+#: a run that leaves them off keeps the key it had before they existed.
 _OMITTED_WHEN_NONE = (
     "eval_early_stop",
     "eval_fine_min_weight",

@@ -59,9 +59,9 @@ def ring_colour_share(
     least :data:`MIN_CONTRAST`, and per background pixel 8-connected to it: its colour's
     position between floor (0) and object (1) along that difference, in the ground-truth
     ``image`` and in the model's ``render`` (nan without one), and whether an object slot
-    claims it. The pixel filter blends an object into the pixels around it; a rim the
-    ground truth's colours do not carry (share well under one half) is painted by the
-    object slots in the floor's colour.
+    claims it. The pixel filter blends an object into the pixels around it (the share in
+    ``image``); a share in ``render`` well above it means the model draws the object's edge
+    wider than it is, one near 0 on a claimed pixel that an object slot paints floor colour.
 
     Args:
         pred, gt, bg_slot: as :func:`rim_geometry`.
