@@ -74,7 +74,13 @@ def _parser() -> argparse.ArgumentParser:
         choices=("generator", "synthetic"),
         help="generator = Blender presets (default); synthetic = analytic stand-in for tests",
     )
-    r.add_argument("--seed", type=int, default=0, help="base seed of data, training and evaluation")
+    r.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="base seed of data, training and evaluation; splits already in --data are "
+        "reused as found, whatever seed made them (the report and the data: line say so)",
+    )
     r.add_argument("--steps", type=int, default=None, help="override the scale's training steps")
     r.add_argument(
         "--train-minutes",
@@ -382,13 +388,19 @@ def _verdict_lines(report: dict[str, Any]) -> list[str]:
 
 def _data_line(datasets: list[dict[str, Any]]) -> str:
     """``data:   FOLDER (N splits: generated now a, b; found on disk c)``, or "" if the run
-    used no dataset."""
+    used no dataset. A split found on disk that deviates from the scale's nominal settings
+    says how (``c [0 data seed (nominal 1)]``): a ``--seed 1`` run on splits an earlier
+    ``--seed 0`` run made trains and scores on the seed-0 scenes."""
     paths = [str(d["path"]) for d in datasets if d.get("path")]
     if not paths:
         return ""
     root = os.path.commonpath(paths) if len(paths) > 1 else paths[0]
     made = [d["name"] for d in datasets if d.get("generated_now")]
-    found = [d["name"] for d in datasets if not d.get("generated_now")]
+    found = [
+        d["name"] + (f" [{', '.join(d['deviations'])}]" if d.get("deviations") else "")
+        for d in datasets
+        if not d.get("generated_now")
+    ]
     parts = ([f"generated now {', '.join(made)}"] if made else []) + (
         [f"found on disk {', '.join(found)}"] if found else []
     )

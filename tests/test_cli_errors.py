@@ -278,7 +278,12 @@ def test_benchmark_summary_prints_each_thing_once(tmp_path):
             for v, w in (("full", "ema"), ("w/o NVS", "raw"))
         ],
         "datasets": [
-            {"name": n, "path": str(tmp_path / "data" / "smoke" / n), "generated_now": i == 0}
+            {
+                "name": n,
+                "path": str(tmp_path / "data" / "smoke" / n),
+                "generated_now": i == 0,
+                "deviations": [] if i == 0 else ["0 data seed (nominal 1)"],
+            }
             for i, n in enumerate(("clevr567/test", "clevr567/train"))
         ],
     }
@@ -290,6 +295,8 @@ def test_benchmark_summary_prints_each_thing_once(tmp_path):
     assert text.count("clevr567 / sVORF (ours)") == 1 and "sVORF (w/o NVS)" in text
     assert text.count(str(path)) == 1 and text.count("index.html") == 1
     assert f"data:   {tmp_path / 'data' / 'smoke' / 'clevr567'} (2 splits: generated now " in text
+    # a split found on disk says how it deviates (here: an earlier run's data seed)
+    assert "found on disk clevr567/train [0 data seed (nominal 1)])" in text
     assert text.splitlines()[-2:] == [
         f"report: {path}",
         f"page:   {path.parent / 'index.html'}",
