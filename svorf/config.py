@@ -682,6 +682,15 @@ class ModelConfig:
         return dataclasses.replace(self, **changes)
 
 
+def ramp(progress: float, p0: float, p1: float) -> float:
+    """0 before ``p0``, 1 from ``p1`` on, linear in between (a schedule over the run)."""
+    if progress <= p0:
+        return 0.0
+    if progress >= p1:
+        return 1.0
+    return (progress - p0) / (p1 - p0)
+
+
 #: Tuple fields (JSON gives lists) and their form, for checks and messages.
 _TUPLES = {
     "bg_chroma_fade": "(p0, p1)",

@@ -48,6 +48,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +85,7 @@ from svorf.ray_sampling import (
     OBJECT_HEAVY_FRACTION,
     OBJECT_HEAVY_THRESHOLD,
     RAY_SAMPLING,
+    SALIENT_RAY_SAMPLING,
     STATEFUL_RAY_SAMPLING,
     ErrorMap,
     RaySamplingFn,
@@ -650,8 +652,26 @@ class RaySampler:
             return torch.randperm(n, generator=generator)[:batch_scenes]
         return torch.randint(0, n, (batch_scenes,), generator=generator)
 
-    def sample(self, scenes: Tensor | Sequence[int], generator: torch.Generator) -> RayBatch:
-        """Build the batch for the given scene positions (CPU tensors)."""
+    def sample(
+        self,
+        scenes: Tensor | Sequence[int],
+        generator: torch.Generator,
+        salient_fraction: float | None = None,
+    ) -> RayBatch:
+        """Build the batch for the given scene positions (CPU tensors).
+
+        ``salient_fraction`` overrides the share of rays a salient strategy
+        (:data:`~svorf.ray_sampling.SALIENT_RAY_SAMPLING`) draws from salient pixels
+        (0 = uniform); None keeps the strategy's own.
+        """
+        draw = self._fn
+        if salient_fraction is not None:
+            if self.ray_sampling not in SALIENT_RAY_SAMPLING:
+                raise ValueError(
+                    f"salient_fraction needs a salient strategy {sorted(SALIENT_RAY_SAMPLING)}, "
+                    f"this sampler's is {self.ray_sampling!r}"
+                )
+            draw = partial(self._fn, fraction=float(salient_fraction))
         ds = self.dataset
         scenes = torch.as_tensor(scenes, dtype=torch.long).reshape(-1)
         v_all, (h, w) = ds.n_views, ds.image_hw
@@ -677,7 +697,7 @@ class RaySampler:
             if self.error_map is not None:
                 flat = self.error_map.draw(s, views, r, generator)
             else:
-                flat = self._fn(ds._rgb[s][views], r, generator)
+                flat = draw(ds._rgb[s][views], r, generator)
             vsel = views[flat // (h * w)]
             pix = flat % (h * w)
             out["images"].append(ds.images(s, [iv])[0])

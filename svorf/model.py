@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .compose import SlotGuidedComposer, compose, compose_density_weighted
-from .config import ModelConfig, bf16_autocast_on
+from .config import ModelConfig, bf16_autocast_on, ramp
 from .decoder import build_slot_module
 from .encoder import ImageEncoder
 from .field import CondParams, FieldParams, build_fields, positional_encoding
@@ -118,15 +118,6 @@ class PairCount:
 # (fp32 / bf16): sparse 4-7x faster at 15% kept, 2-3x at 30%, about even at 85%, dense
 # 1.1x faster at 100%.
 _DENSE_ABOVE = 0.85
-
-
-def _ramp(progress: float, p0: float, p1: float) -> float:
-    """0 before ``p0``, 1 from ``p1`` on, linear in between (a schedule over the run)."""
-    if progress <= p0:
-        return 0.0
-    if progress >= p1:
-        return 1.0
-    return (progress - p0) / (p1 - p0)
 
 
 class SVORF(nn.Module):
@@ -509,19 +500,19 @@ class SVORF(nn.Module):
         it before every step; a no-op without such fields."""
         fade = self.cfg.bg_chroma_fade
         if fade is not None:
-            self.bg_chroma.fill_(1.0 - _ramp(progress, *fade))
+            self.bg_chroma.fill_(1.0 - ramp(progress, *fade))
         narrow = self.cfg.slot_locality_narrow
         if narrow is not None:
             r0, (r1, p0, p1) = float(self.cfg.slot_locality), narrow
-            self.locality_radius.fill_(r0 + (r1 - r0) * _ramp(progress, p0, p1))
+            self.locality_radius.fill_(r0 + (r1 - r0) * ramp(progress, p0, p1))
         if self.cfg.fg_mass is not None:
             lam, p0, p1 = self.cfg.fg_mass
-            self.fg_mass_weight.fill_(lam * _ramp(progress, p0, p1))
+            self.fg_mass_weight.fill_(lam * ramp(progress, p0, p1))
         if self.cfg.fg_binary is not None:
             lam, p0, p1 = self.cfg.fg_binary
-            self.fg_binary_weight.fill_(lam * _ramp(progress, p0, p1))
+            self.fg_binary_weight.fill_(lam * ramp(progress, p0, p1))
         if self.cfg.photo_l1 is not None:
-            self.photo_l1_weight.fill_(_ramp(progress, *self.cfg.photo_l1))
+            self.photo_l1_weight.fill_(ramp(progress, *self.cfg.photo_l1))
 
     def query_context(
         self,

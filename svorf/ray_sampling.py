@@ -41,6 +41,7 @@ __all__ = [
     "OBJECT_HEAVY_FRACTION",
     "OBJECT_HEAVY_THRESHOLD",
     "RAY_SAMPLING",
+    "SALIENT_RAY_SAMPLING",
     "STATEFUL_RAY_SAMPLING",
     "ErrorMap",
     "RaySamplingFn",
@@ -395,6 +396,12 @@ RAY_SAMPLING: dict[str, RaySamplingFn] = {
 }
 #: Strategies that need an :class:`ErrorMap` fed with each step's per-ray errors.
 STATEFUL_RAY_SAMPLING = frozenset({"error_driven"})
+#: Strategies that draw a share of the rays (keyword ``fraction``, default
+#: :data:`OBJECT_HEAVY_FRACTION`) from salient pixels and the rest uniformly; with
+#: ``fraction=0`` they are uniform sampling (``TrainConfig.salient_fade`` fades it).
+SALIENT_RAY_SAMPLING = frozenset(
+    {"object_heavy", "object_contrast", "object_balanced", "object_balanced_sqrt"}
+)
 
 
 def register_ray_sampling(name: str, fn: RaySamplingFn) -> None:

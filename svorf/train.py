@@ -74,12 +74,12 @@ from svorf.checkpoint import (
     restore_checkpoint,
     write_checkpoint,
 )
-from svorf.config import ModelConfig, bf16_autocast_on
+from svorf.config import ModelConfig, bf16_autocast_on, ramp
 from svorf.data import MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
 from svorf.optim import WeightAverage, grad_norm, make_optimizer
 from svorf.predict import ScenePrediction, default_eval, predict_scene
-from svorf.ray_sampling import ErrorMap
+from svorf.ray_sampling import OBJECT_HEAVY_FRACTION, ErrorMap
 from svorf.train_config import (
     BOOKKEEPING_FIELDS,
     CPU_RECIPE,
@@ -602,7 +602,10 @@ def _train_step(
         group["lr"] = lr
     getattr(model, "module", model).set_progress(progress)
     smp = run.sampler_warm if step < cfg.nvs_warmup else run.sampler
-    batch = smp.sample(smp.sample_scenes(cfg.batch_scenes, run.gen), run.gen)
+    share = None  # TrainConfig.salient_fade: the salient rays' share fades to 0
+    if cfg.salient_fade is not None:
+        share = OBJECT_HEAVY_FRACTION * (1.0 - ramp(progress, *cfg.salient_fade))
+    batch = smp.sample(smp.sample_scenes(cfg.batch_scenes, run.gen), run.gen, share)
     if run.dctx is not None:
         batch = _batch_rows(batch, run.lo, run.hi)
     batch = batch.to(run.device)

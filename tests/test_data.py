@@ -415,6 +415,42 @@ def test_object_contrast_rays_find_grey_objects_and_stay_label_free():
         object_contrast_rays(img, 8, g1, fraction=1.5)
 
 
+def test_edge_and_ring_of_a_square():
+    from benchmark.tools.raystats import edge_and_ring
+
+    ids = torch.zeros(1, 6, 6, dtype=torch.long)
+    ids[0, 1:4, 1:4] = 2
+    edge, ring = edge_and_ring(ids)
+    assert int(edge.sum()) == 8 and not edge[0, 2, 2]  # the 3x3's border, not its centre
+    assert int(ring.sum()) == 5 * 5 - 9 and ring[0, 0, 0] and not ring[0, 5, 5]
+
+
+def test_salient_fraction_zero_makes_a_salient_sampler_uniform(split):
+    """RaySampler.sample(salient_fraction=...): 0 draws every ray uniformly (the share on
+    salient pixels falls to their share of the views), the default keeps half on them;
+    a strategy without a salient share refuses it."""
+    from svorf.ray_sampling import salient_pixels
+
+    ds = MultiViewDataset(split)
+    smp = RaySampler(ds, 256, nvs=False, ray_sampling="object_heavy")
+
+    def on_salient(fraction):
+        g = torch.Generator().manual_seed(0)
+        hits = []
+        for _ in range(8):
+            b = smp.sample([0], g, fraction)
+            sal = salient_pixels(ds._rgb[0]).reshape(ds.n_views, -1)
+            hits.append(sal[b.target_view[0], b.target_pixel[0]].float().mean())
+        return float(torch.stack(hits).mean()), float(salient_pixels(ds._rgb[0]).float().mean())
+
+    default, share = on_salient(None)
+    uniform, _ = on_salient(0.0)
+    assert default > 0.5 + share / 2 - 0.06  # half the rays on salient pixels, plus chance
+    assert abs(uniform - share) < 0.06
+    with pytest.raises(ValueError, match="salient_fraction"):
+        RaySampler(ds, 8, ray_sampling="uniform").sample([0], torch.Generator(), 0.0)
+
+
 def test_object_balanced_rays_give_a_small_blob_a_large_blobs_share():
     """A 3x3 and a 12x12 object on a uniform floor: object_heavy draws them in proportion
     to area, object_balanced about equally; a speck under min_blob gets a smaller share."""
@@ -472,6 +508,11 @@ def test_raystats_scores_strategies_against_the_truth(split, tmp_path):
     r = ray_stats(ds, "uniform", rays=4000, small=1e9)  # every object counts as small
     assert r["rays_on_objects"] == pytest.approx(coverage, abs=0.03)
     assert r["small_objects"] > 0 and r["rays_per_small_object"] > 0
+    dense = ray_stats(ds, "uniform", rays=40000)
+    assert dense["edge_rate"] == pytest.approx(1.0, abs=0.1)  # uniform: every band alike
+    assert dense["ring_rate"] == pytest.approx(1.0, abs=0.1)
+    heavy = ray_stats(ds, "object_balanced", rays=4000)
+    assert heavy["edge_over_ring"] > 1.5  # the salient half lands on objects, not the ring
     with pytest.raises(ValueError, match="error_driven"):
         ray_stats(ds, "error_driven")
     out = tmp_path / "stats.json"

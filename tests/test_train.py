@@ -269,6 +269,32 @@ def test_target_size_draws_rays_from_the_finer_grid(split, tmp_path):
         TrainConfig(target_size=4)
 
 
+def test_salient_fade_ends_the_run_on_uniform_rays(split, tmp_path, monkeypatch):
+    """TrainConfig.salient_fade: the salient share passed to the sampler is the strategy's
+    0.5 until p0, 0 from p1 on; the field round-trips, is left out of the key while off,
+    and refuses a bad schedule or a strategy without a salient share."""
+    from svorf.data import RaySampler
+
+    assert "salient_fade" not in tcfg(ray_sampling="object_heavy").to_dict()
+    cfg = tcfg(steps=4, ray_sampling="object_heavy", salient_fade=[0.25, 0.75])
+    assert cfg.salient_fade == (0.25, 0.75)
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    seen = []
+    real = RaySampler.sample
+
+    def spy(self, scenes, generator, salient_fraction=None):
+        seen.append(salient_fraction)
+        return real(self, scenes, generator, salient_fraction)
+
+    monkeypatch.setattr(RaySampler, "sample", spy)
+    train(split, tmp_path / "fade", MCFG, cfg, progress=False)
+    assert seen == pytest.approx([0.5, 0.5, 0.25, 0.0])  # progress 0, 1/4, 1/2, 3/4
+    with pytest.raises(ValueError, match="salient_fade must be"):
+        TrainConfig(ray_sampling="object_heavy", salient_fade=(0.7, 0.5))
+    with pytest.raises(ValueError, match="salient_fade fades"):
+        TrainConfig(ray_sampling="uniform", salient_fade=(0.5, 0.7))
+
+
 def test_cli_train_refuses_data_coarser_than_target_size(split, tmp_path, capsys, monkeypatch):
     """svorf train whose configs ask for 64x64 targets on a 32x32 split: one line that
     names target_size and the resolution to render, before any model is built."""
