@@ -81,7 +81,8 @@ class TrainConfig:
     """Seeds parameter init, data sampling and the model's own randomness."""
     ray_sampling: str = "uniform"
     """Ray-sampling strategy, a name in ``svorf.ray_sampling.RAY_SAMPLING``; "uniform" = paper,
-    "object_heavy" (cpu scale) = half the rays from salient pixels, "object_balanced" = the
+    "object_heavy" (cpu scale) = half the rays from salient pixels, "object_heavy_ring" = the
+    same with the salient pixels grown by one pixel, "object_balanced" = the
     same half shared equally among the salient pixels' blobs, "error_driven" = half
     the rays from image tiles in proportion to the model's recent error there
     (``svorf.ray_sampling.ErrorMap``; label-free, its state is checkpointed)."""

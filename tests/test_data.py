@@ -415,6 +415,22 @@ def test_object_contrast_rays_find_grey_objects_and_stay_label_free():
         object_contrast_rays(img, 8, g1, fraction=1.5)
 
 
+def test_object_heavy_ring_draws_the_floor_ring_beside_a_salient_blob():
+    from svorf.ray_sampling import object_heavy_rays
+
+    img = torch.full((1, 12, 12, 3), 100, dtype=torch.uint8)
+    img[0, 4:8, 4:8] = torch.tensor([220, 40, 40], dtype=torch.uint8)
+    g = torch.Generator().manual_seed(0)
+    plain = object_heavy_rays(img, 2000, g, fraction=1.0)
+    ring = RAY_SAMPLING["object_heavy_ring"](img, 2000, g, fraction=1.0)
+    rows, cols = ring // 12, ring % 12
+    assert set((plain // 12).tolist()) == {4, 5, 6, 7}  # the blob alone
+    assert rows.min() == 3 and rows.max() == 8 and cols.min() == 3 and cols.max() == 8
+    assert len(set(ring.tolist())) == 36  # every pixel of the 6x6 grown blob
+    with pytest.raises(ValueError, match="grow"):
+        object_heavy_rays(img, 8, g, grow=-1)
+
+
 def test_edge_and_ring_of_a_square():
     from benchmark.tools.raystats import edge_and_ring
 
