@@ -74,12 +74,12 @@ from svorf.checkpoint import (
     restore_checkpoint,
     write_checkpoint,
 )
-from svorf.config import ModelConfig, bf16_autocast_on, ramp
+from svorf.config import ModelConfig, bf16_autocast_on
 from svorf.data import MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
 from svorf.optim import WeightAverage, grad_norm, make_optimizer
 from svorf.predict import ScenePrediction, default_eval, predict_scene
-from svorf.ray_sampling import OBJECT_HEAVY_FRACTION, ErrorMap
+from svorf.ray_sampling import ErrorMap
 from svorf.train_config import (
     BOOKKEEPING_FIELDS,
     CPU_RECIPE,
@@ -588,9 +588,8 @@ class _Budget:
 def _train_step(
     run: _Run, step: int, progress: float, params: list[torch.nn.Parameter]
 ) -> tuple[float, dict[str, Tensor], Tensor]:
-    """One optimizer step (0-based ``step``): learning rate, batch, forward, backward,
-    the NaN guard, Adam. Returns ``(lr, loss parts, gradient norm)``; ``run.last_loss``
-    is the step's loss.
+    """One optimizer step (0-based ``step``): learning rate, batch, forward, backward, the
+    NaN guard, Adam. Returns ``(lr, loss parts, gradient norm)``; ``run.last_loss`` too.
 
     Under torchrun every rank draws the whole global batch (the same draws as one
     process), keeps its rows, and the gradients and loss are averaged over the ranks
@@ -602,10 +601,8 @@ def _train_step(
         group["lr"] = lr
     getattr(model, "module", model).set_progress(progress)
     smp = run.sampler_warm if step < cfg.nvs_warmup else run.sampler
-    share = None  # TrainConfig.salient_fade: the salient rays' share fades to 0
-    if cfg.salient_fade is not None:
-        share = OBJECT_HEAVY_FRACTION * (1.0 - ramp(progress, *cfg.salient_fade))
-    batch = smp.sample(smp.sample_scenes(cfg.batch_scenes, run.gen), run.gen, share)
+    scenes = smp.sample_scenes(cfg.batch_scenes, run.gen)
+    batch = smp.sample(scenes, run.gen, cfg.salient_share(progress))
     if run.dctx is not None:
         batch = _batch_rows(batch, run.lo, run.hi)
     batch = batch.to(run.device)

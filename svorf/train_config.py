@@ -25,8 +25,8 @@ import torch
 
 from scenefmt.cli_util import choose
 from svorf import registry
-from svorf.config import ModelConfig, model_config
-from svorf.ray_sampling import RAY_SAMPLING, SALIENT_RAY_SAMPLING
+from svorf.config import ModelConfig, model_config, ramp
+from svorf.ray_sampling import OBJECT_HEAVY_FRACTION, RAY_SAMPLING, SALIENT_RAY_SAMPLING
 from svorf.registry import PRESETS, PresetSpec, Recipe, recipe_for
 
 __all__ = [
@@ -203,6 +203,13 @@ class TrainConfig:
         if unknown:
             raise ValueError(f"TrainConfig.from_dict: unknown keys {unknown}")
         return cls(**d)
+
+    def salient_share(self, progress: float) -> float | None:
+        """The salient share of the rays at ``progress`` under ``salient_fade`` (None: off,
+        the strategy's own share)."""
+        if self.salient_fade is None:
+            return None
+        return OBJECT_HEAVY_FRACTION * (1.0 - ramp(progress, *self.salient_fade))
 
     def replace(self, **changes: Any) -> TrainConfig:
         """A copy with ``changes`` (field values) applied and checked."""

@@ -129,8 +129,8 @@ def test_nvs_warmup_uses_input_view_rays_first(split, tmp_path, monkeypatch):
     seen = []
     orig = train_mod.RaySampler.sample
 
-    def spy(self, scenes, gen):
-        batch = orig(self, scenes, gen)
+    def spy(self, scenes, gen, salient_fraction=None):
+        batch = orig(self, scenes, gen, salient_fraction)
         seen.append(bool((batch.target_view == batch.input_view[:, None]).all()))
         return batch
 
