@@ -55,11 +55,12 @@ def ray_stats(
     small_rays: list[int] = []
     large_rays: list[int] = []
     for s in range(len(ds)):
-        ids = ds[s].instances[views].reshape(-1)
+        inst = ds[s].instances[views]
+        ids = inst.reshape(-1)
         rgb = ds.images(s, views).permute(0, 2, 3, 1).mul(255.0).round().to(torch.uint8)
         drawn = fn(rgb, rays, gen)
         hit = ids[drawn]
-        bands = edge_and_ring(ds[s].instances[views]).reshape(2, -1)
+        bands = edge_and_ring(inst).reshape(2, -1)
         band_rays += bands[:, drawn].sum(dim=1)
         band_pixels += bands.sum(dim=1)
         pixels += len(ids)
