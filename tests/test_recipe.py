@@ -55,10 +55,12 @@ def test_paper_scale_has_the_levers_off():
         "slot_centre": "learned",
         "clip_floor_z": None,
         "photo_l1": None,
+        "coarse_loss_weight": 1.0,
     }
     assert mr.slot_centre == "anchored" and m.slot_centre == "learned"
     assert mr.clip_floor_z == 0.0 and m.clip_floor_z is None  # the far floor: cpu recipe only
     assert mr.photo_l1 == (0.5, 0.7) and m.photo_l1 is None  # absolute error: cpu recipe only
+    assert mr.coarse_loss_weight == 0.1 and m.coarse_loss_weight == 1.0  # cpu recipe only
     assert tr.ema_decay == 0.999 and t.ema_decay == 0.0  # the weight average: cpu recipe only
     mr2, tr2 = recipe_configs(levers=off, lr=1e-3)
     assert mr2.fg_zmin is None and tr2.nvs_warmup == 0 and tr2.lr == 1e-3
