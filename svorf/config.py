@@ -17,6 +17,7 @@ import json
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
 
+from svorf.config_checks import check
 from svorf.registry import SCALE_NAMES, SCALES
 
 Composition = Literal["slot_guided", "density_weighted", "slot_mixer"]
@@ -342,6 +343,17 @@ class ModelConfig:
     short intervals at a surface make dense matter look half-transparent). None = per
     interval. Not measured yet."""
 
+    ray_distortion: tuple[float, float, float] | None = None
+    """Mip-NeRF 360's distortion loss on the *composed* ray, ``(lambda, p0, p1)``: the loss
+    gains ``w * mean over rays of L(t, w_ray)`` (:func:`svorf.losses.ray_distortion`), with
+    ``w_ray`` the fine pass's weights of the composed density (intervals to the ray's far
+    bound, distances normalised by ``far - near`` as for ``connectivity``) and ``w`` ramped
+    as for ``fg_mass`` (0 before ``p0``, ``lambda`` from ``p1`` on). The paper's
+    connectivity term prices each object field's own spread; a ray that crosses an object's
+    thin halo and then the floor splits its weight between two surfaces, which only this
+    term prices. The weight is a model buffer (``ray_distortion_weight``). None = off
+    (paper). A lever."""
+
     photo_l1: tuple[float, float] | None = None
     """The photometric terms (fine and coarse) move from squared to absolute error between
     progress ``p0`` and ``p1`` (``(p0, p1)``, ramped as ``fg_mass``): ``(1 - b) MSE + b s
@@ -423,223 +435,7 @@ class ModelConfig:
         _check_choice("density_act", self.density_act, DensityAct)
         _check_choice("coord_frame", self.coord_frame, CoordFrame)
         _check_choice("slot_centre", self.slot_centre, SlotCentre)
-        if self.bf16_autocast not in (True, False, "auto"):
-            raise ValueError(
-                f"ModelConfig.bf16_autocast must be true, false or 'auto', got {self.bf16_autocast!r}"
-            )
-        positive = (
-            "image_size",
-            "enc_width",
-            "feat_dim",
-            "num_slots",
-            "slot_dim",
-            "dec_heads",
-            "dec_ffn",
-            "mlp_width",
-            "comp_dim",
-            "comp_heads",
-            "n_coarse",
-        )
-        for name in positive:
-            if getattr(self, name) <= 0:
-                raise ValueError(f"ModelConfig.{name} must be > 0, got {getattr(self, name)}")
-        if self.image_size % 8:
-            raise ValueError(
-                f"ModelConfig.image_size must be a multiple of 8, got {self.image_size}"
-            )
-        if len(self.enc_blocks) != 3 or min(self.enc_blocks) < 1:
-            raise ValueError(
-                f"ModelConfig.enc_blocks must be 3 positive block counts, got {self.enc_blocks}"
-            )
-        if self.num_slots < 1:
-            raise ValueError(f"ModelConfig.num_slots must be >= 1, got {self.num_slots}")
-        if self.slot_dim % self.dec_heads:
-            raise ValueError(
-                f"ModelConfig.slot_dim ({self.slot_dim}) must be divisible by dec_heads "
-                f"({self.dec_heads})"
-            )
-        if self.comp_dim % self.comp_heads:
-            raise ValueError(
-                f"ModelConfig.comp_dim ({self.comp_dim}) must be divisible by comp_heads "
-                f"({self.comp_heads})"
-            )
-        if self.mlp_depth < 2:
-            raise ValueError(f"ModelConfig.mlp_depth must be >= 2, got {self.mlp_depth}")
-        if not (self.mlp_skip == 0 or 2 <= self.mlp_skip <= self.mlp_depth - 1):
-            raise ValueError(
-                f"ModelConfig.mlp_skip must be 0 or in [2, mlp_depth-1={self.mlp_depth - 1}], "
-                f"got {self.mlp_skip}"
-            )
-        if self.dec_layers < 0 or self.hyper_hidden < 0 or self.n_fine < 0:
-            raise ValueError("ModelConfig.dec_layers, hyper_hidden and n_fine must be >= 0")
-        if not 0.0 <= self.near < self.far:
-            raise ValueError(
-                f"ModelConfig needs 0 <= near < far, got near={self.near}, far={self.far}"
-            )
-        if self.box_half <= 0 or (self.fg_box is not None and self.fg_box <= 0):
-            raise ValueError("ModelConfig.box_half and fg_box must be > 0")
-        if self.bg_achromatic and self.composition == "slot_mixer":
-            raise ValueError(
-                "ModelConfig.bg_achromatic needs per-slot colours; composition='slot_mixer' "
-                "mixes the slots before the colour is computed (set bg_achromatic=False)"
-            )
-        if self.bg_chroma_fade is not None:
-            p0, p1 = self.bg_chroma_fade
-            if not 0.0 <= p0 <= p1 <= 1.0 or self.bg_achromatic:
-                raise ValueError(
-                    f"ModelConfig.bg_chroma_fade must be (p0, p1) with 0 <= p0 <= p1 <= 1 "
-                    f"(fractions of the run) and bg_achromatic=False, got "
-                    f"bg_chroma_fade={self.bg_chroma_fade}, bg_achromatic={self.bg_achromatic}"
-                )
-            if self.composition == "slot_mixer":
-                raise ValueError(
-                    "ModelConfig.bg_chroma_fade needs per-slot colours; composition="
-                    "'slot_mixer' mixes the slots before the colour is computed "
-                    "(set bg_chroma_fade=None)"
-                )
-        if self.box_z is not None:
-            lo, hi = self.box_z
-            if not (self.clip_to_box and -self.box_half <= lo < hi <= self.box_half):
-                raise ValueError(
-                    f"ModelConfig.box_z must be (floor, ceiling) with -box_half <= floor < "
-                    f"ceiling <= box_half and needs clip_to_box=True, got box_z={self.box_z}, "
-                    f"box_half={self.box_half}, clip_to_box={self.clip_to_box}"
-                )
-        if self.clip_floor_z is not None and not self.clip_to_box:
-            raise ValueError(
-                f"ModelConfig.clip_floor_z={self.clip_floor_z} needs clip_to_box=True (without "
-                "the box every ray already reaches far); set clip_to_box=True or clip_floor_z=None"
-            )
-        if self.clip_floor_front and self.clip_floor_z is None:
-            raise ValueError(
-                "ModelConfig.clip_floor_front=True needs clip_floor_z (the ground plane's "
-                "height); set clip_floor_z or clip_floor_front=False"
-            )
-        if self.bg_outside_fg and self.fg_box is None and self.fg_zmin is None:
-            raise ValueError("ModelConfig.bg_outside_fg needs fg_box or fg_zmin (the region)")
-        if self.bg_floor_slab is not None:
-            if not self.bg_floor_slab > 0:
-                raise ValueError(
-                    f"ModelConfig.bg_floor_slab must be > 0 (world units) or None, "
-                    f"got {self.bg_floor_slab}"
-                )
-            if not (self.bg_outside_fg and self.fg_zmin is not None and self.fg_box is not None):
-                raise ValueError(
-                    "ModelConfig.bg_floor_slab needs bg_outside_fg=True, fg_zmin and fg_box "
-                    "(the slab lies under the foreground region)"
-                )
-        if self.bg_pos_freqs_xyz is not None:
-            if not 0 <= self.bg_pos_freqs_xyz < self.pos_freqs_xyz:
-                raise ValueError(
-                    f"ModelConfig.bg_pos_freqs_xyz must be in [0, pos_freqs_xyz="
-                    f"{self.pos_freqs_xyz}) or None, got {self.bg_pos_freqs_xyz}"
-                )
-            if not self.hypernetwork:
-                raise ValueError(
-                    "ModelConfig.bg_pos_freqs_xyz limits the background slot's generated "
-                    "weights: it needs hypernetwork=True"
-                )
-        if not (self.comp_temperature > 0):
-            raise ValueError(
-                f"ModelConfig.comp_temperature must be > 0, got {self.comp_temperature}"
-            )
-        if self.fg_mass is not None:
-            lam, p0, p1 = self.fg_mass
-            if not (lam >= 0 and 0.0 <= p0 <= p1 <= 1.0):
-                raise ValueError(
-                    "ModelConfig.fg_mass must be (lambda, p0, p1) with lambda >= 0 and "
-                    f"0 <= p0 <= p1 <= 1 (fractions of the run), got {self.fg_mass}"
-                )
-        if self.fg_binary is not None:
-            lam, p0, p1 = self.fg_binary
-            if not (lam >= 0 and 0.0 <= p0 <= p1 <= 1.0):
-                raise ValueError(
-                    "ModelConfig.fg_binary must be (lambda, p0, p1) with lambda >= 0 and "
-                    f"0 <= p0 <= p1 <= 1 (fractions of the run), got {self.fg_binary}"
-                )
-        length = self.fg_binary_length
-        if length is not None and (self.fg_binary is None or not length > 0):
-            raise ValueError(
-                f"ModelConfig.fg_binary_length must be a length > 0 (world units) and needs "
-                f"fg_binary=(lambda, p0, p1); got {length} with fg_binary {self.fg_binary}"
-            )
-        if self.fg_binary_all and self.fg_binary is None:
-            raise ValueError(
-                "ModelConfig.fg_binary_all widens fg_binary's price to every slot: it needs "
-                "fg_binary=(lambda, p0, p1)"
-            )
-        halo = self.fg_mass_halo
-        if halo is not None and (self.fg_mass is None or not self.bg_outside_fg or not halo > 0):
-            raise ValueError(
-                "ModelConfig.fg_mass_halo (tau > 0) weights fg_mass's price: it needs fg_mass "
-                f"and bg_outside_fg=True, got fg_mass_halo={halo}, fg_mass={self.fg_mass}, "
-                f"bg_outside_fg={self.bg_outside_fg}"
-            )
-        if self.slot_locality is not None:
-            if not self.slot_locality > 0:
-                raise ValueError(
-                    f"ModelConfig.slot_locality must be > 0 or None, got {self.slot_locality}"
-                )
-            if self.composition == "slot_mixer":
-                raise ValueError(
-                    "ModelConfig.slot_locality needs per-slot fields; composition='slot_mixer' "
-                    "mixes them (use slot_guided or density_weighted)"
-                )
-        if self.slot_locality_narrow is not None:
-            r_end, p0, p1 = self.slot_locality_narrow
-            if self.slot_locality is None or not (r_end > 0 and 0.0 <= p0 <= p1 <= 1.0):
-                raise ValueError(
-                    "ModelConfig.slot_locality_narrow must be (r_end, p0, p1) with r_end > 0 "
-                    "and 0 <= p0 <= p1 <= 1 (fractions of the run), with slot_locality set; "
-                    f"got slot_locality_narrow={self.slot_locality_narrow}, "
-                    f"slot_locality={self.slot_locality}"
-                )
-        if self.slot_locality_xy and self.slot_locality is None:
-            raise ValueError(
-                "ModelConfig.slot_locality_xy shapes slot_locality's envelope: set "
-                "slot_locality (a radius) too"
-            )
-        if self.slot_centre != "learned" and self.slot_locality is None:
-            raise ValueError(
-                f"ModelConfig.slot_centre={self.slot_centre!r} places slot_locality centres: set "
-                "slot_locality (a radius) too"
-            )
-        if not self.centre_temperature > 0:
-            raise ValueError(
-                f"ModelConfig.centre_temperature must be > 0, got {self.centre_temperature}"
-            )
-        if not self.centre_focal > 0:
-            raise ValueError(f"ModelConfig.centre_focal must be > 0, got {self.centre_focal}")
-        if self.last_delta <= 0 or self.sigma_max <= 0:
-            raise ValueError("ModelConfig.last_delta and sigma_max must be > 0")
-        if self.slot_mask_train != 0 and not 0 < self.slot_mask_train <= self.num_slots - 2:
-            raise ValueError(
-                f"ModelConfig.slot_mask_train must leave the background and at least one "
-                f"object slot: 0 <= slot_mask_train <= num_slots-2={self.num_slots - 2}, "
-                f"got {self.slot_mask_train}"
-            )
-        if self.slot_topk < 0:
-            raise ValueError(
-                f"ModelConfig.slot_topk must be >= 0 (0 or >= num_slots = all slots), "
-                f"got {self.slot_topk}"
-            )
-        if not 0.0 < self.slot_keep_mass <= 1.0:
-            raise ValueError(
-                f"ModelConfig.slot_keep_mass must be in (0, 1] (1 = off), got {self.slot_keep_mass}"
-            )
-        for name in ("eval_early_stop", "eval_fine_min_weight"):
-            v = getattr(self, name)
-            if v is not None and not 0.0 < v < 1.0:
-                raise ValueError(f"ModelConfig.{name} must be in (0, 1) or None (off), got {v!r}")
-        if self.enc_up_kernel not in (None, 1, 3):
-            raise ValueError(
-                f"ModelConfig.enc_up_kernel must be None (3x3, the paper), 1 or 3, "
-                f"got {self.enc_up_kernel!r}"
-            )
-        if self.slot_attn_iters < 1:
-            raise ValueError(
-                f"ModelConfig.slot_attn_iters must be >= 1, got {self.slot_attn_iters}"
-            )
+        check(self)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (tuples become lists; :data:`_OMITTED_WHEN_NONE` fields only
@@ -682,6 +478,12 @@ class ModelConfig:
         return dataclasses.replace(self, **changes)
 
 
+def _check_choice(name: str, value: object, literal: object) -> None:
+    choices = get_args(literal)
+    if value not in choices:
+        raise ValueError(f"ModelConfig.{name} must be one of {choices}, got {value!r}")
+
+
 def ramp(progress: float, p0: float, p1: float) -> float:
     """0 before ``p0``, 1 from ``p1`` on, linear in between (a schedule over the run)."""
     if progress <= p0:
@@ -699,6 +501,7 @@ _TUPLES = {
     "fg_binary": "(lambda, p0, p1)",
     "box_z": "(floor, ceiling)",
     "photo_l1": "(p0, p1)",
+    "ray_distortion": "(lambda, p0, p1)",
 }
 
 #: Fields read only at evaluation (no effect on training): left out of ``to_dict`` while off.
@@ -718,6 +521,7 @@ _OMITTED_WHEN_NONE = (
     "fg_binary",
     "fg_binary_length",
     "photo_l1",
+    "ray_distortion",
 )
 _OMITTED_WHEN_FALSE = (
     "bg_achromatic",
@@ -726,12 +530,6 @@ _OMITTED_WHEN_FALSE = (
     "fg_binary_all",
     "enc_bf16",
 )
-
-
-def _check_choice(name: str, value: object, literal: object) -> None:
-    choices = get_args(literal)
-    if value not in choices:
-        raise ValueError(f"ModelConfig.{name} must be one of {choices}, got {value!r}")
 
 
 @functools.cache

@@ -1,5 +1,10 @@
 """Connectivity regularisation (paper 3.4): Mip-NeRF 360 distortion on each object field.
 
+Also the cpu recipe's optional prices (each a ``ModelConfig`` lever, off at the paper
+scale): the same distortion on the composed ray (:func:`ray_distortion`), the object
+slots' rendered weight (:func:`object_mass`, :func:`halo_gate`) and their half-transparent
+matter (:func:`soft_matter`).
+
 Where it sits: ``SVORF.render_rays`` calls :func:`connectivity_loss` on the fine-pass samples
 with every slot's own density sigma_i (not the composed one); ``SVORF.loss`` adds
 ``connect_lambda`` (0.01) times it to the MSE.
@@ -107,6 +112,25 @@ def connectivity_loss(
         return per_slot.mean()
     m = slot_mask.to(per_slot.dtype)
     return (per_slot * m).sum() / m.sum().clamp_min(1.0)
+
+
+def ray_distortion(sigma: Tensor, t: Tensor, far_r: Tensor, near: float, far: float) -> Tensor:
+    """Distortion loss on the composed field's weights, mean over rays (scalar float32).
+
+    The same loss and intervals as :func:`connectivity_loss` (last interval ending at the
+    ray's far bound, distances normalised by the config's ``far - near``), on the weights
+    of the composed density ``sigma`` [B, R, N] at the sorted samples ``t`` [B, R, N] instead
+    of each slot's own: a ray whose weight is split between two surfaces (an object's thin
+    halo in front of the floor) pays for the gap. ``ModelConfig.ray_distortion`` prices it.
+    """
+    if t.shape != sigma.shape or far_r.shape != sigma.shape[:-1]:
+        raise ValueError(
+            f"ray_distortion: expected sigma, t [B, R, N] and far_r [B, R]; got sigma "
+            f"{tuple(sigma.shape)}, t {tuple(t.shape)}, far_r {tuple(far_r.shape)}"
+        )
+    edges = _edges_to_far(t, far_r)
+    w = render_weights(sigma, edges[..., 1:] - edges[..., :-1])
+    return distortion_loss(w, (edges - near) / (far - near)).mean()
 
 
 def background_colour(

@@ -49,8 +49,16 @@ from .decoder import build_slot_module
 from .encoder import ImageEncoder
 from .field import CondParams, FieldParams, build_fields, positional_encoding
 from .frames import azimuth_frame, centre_anchors, token_ground_points
-from .losses import background_colour, connectivity_loss, halo_gate, object_mass, soft_matter
+from .losses import (
+    background_colour,
+    connectivity_loss,
+    halo_gate,
+    object_mass,
+    ray_distortion,
+    soft_matter,
+)
 from .march import FieldQuery, QueryContext, RayMarcher
+from .pairs import PairCount, eval_kept, select_pairs, selects_by_m
 from .render import clip_rays_to_box
 
 
@@ -75,6 +83,9 @@ class RenderOutput:
     soft_matter: scalar :func:`~svorf.losses.soft_matter` of the fine pass (the object
         slots' half-transparent matter); only with ``ModelConfig.fg_binary`` and
         need_aux=True, else None.
+    ray_distortion: scalar :func:`~svorf.losses.ray_distortion` of the fine pass (the
+        composed ray's spread); only with ``ModelConfig.ray_distortion`` and need_aux=True,
+        else None.
     """
 
     rgb: Tensor
@@ -85,39 +96,7 @@ class RenderOutput:
     coarse_rgb: Tensor
     bg_rgb: Tensor | None = None
     soft_matter: Tensor | None = None
-
-
-@dataclass
-class PairCount:
-    """How many (point, slot) field evaluations a model asked for and how many it kept.
-
-    The slot selection (``ModelConfig.slot_topk`` / ``slot_keep_mass``, slot locality and
-    masked slots) drops pairs whose field is then never computed; :attr:`fraction` is the
-    share that was evaluated. Counted only while :meth:`SVORF.count_pairs` is on.
-
-    Attributes:
-        kept: pairs evaluated.
-        total: pairs there were (B scenes x K slots x P points, summed over calls).
-    """
-
-    kept: float = 0.0
-    total: float = 0.0
-
-    @property
-    def fraction(self) -> float:
-        """``kept / total`` (0 before any call)."""
-        return self.kept / max(self.total, 1.0)
-
-    def reset(self) -> None:
-        """Start counting from zero again."""
-        self.kept = self.total = 0.0
-
-
-# Above this fraction of kept (point, slot) pairs the dense evaluation is faster than the
-# sparse one (gathers, scatters, tile padding). Measured at cpu scale, fwd+bwd of the fields
-# (fp32 / bf16): sparse 4-7x faster at 15% kept, 2-3x at 30%, about even at 85%, dense
-# 1.1x faster at 100%.
-_DENSE_ABOVE = 0.85
+    ray_distortion: Tensor | None = None
 
 
 class SVORF(nn.Module):
@@ -159,6 +138,8 @@ class SVORF(nn.Module):
             self.register_buffer("fg_mass_weight", torch.zeros(()))
         if cfg.fg_binary is not None:  # the price on soft object matter now
             self.register_buffer("fg_binary_weight", torch.zeros(()))
+        if cfg.ray_distortion is not None:  # the price on the composed ray's spread now
+            self.register_buffer("ray_distortion_weight", torch.zeros(()))
         if cfg.photo_l1 is not None:  # the absolute error's share of the photometric terms
             self.register_buffer("photo_l1_weight", torch.zeros(()))
 
@@ -381,8 +362,11 @@ class SVORF(nn.Module):
             else:
                 share = 1.0 - (q.m * is_bg[:, None, None, :].to(q.m.dtype)).sum(dim=-1)
             soft = soft_matter(q.sigma, t, far_r, share, cfg.fg_binary_length)
+        spread = None
+        if need_aux and cfg.ray_distortion is not None:
+            spread = ray_distortion(q.sigma, t, far_r, cfg.near, cfg.far)
         return RenderOutput(
-            rgb, depth, acc, slot_probs, connectivity, p.coarse_rgb, bg_rgb, soft
+            rgb, depth, acc, slot_probs, connectivity, p.coarse_rgb, bg_rgb, soft, spread
         )  # fmt: skip
 
     def _query(self, ctx: QueryContext, t: Tensor) -> FieldQuery:
@@ -452,9 +436,9 @@ class SVORF(nn.Module):
                 # m needs only gamma(x) and the slots: it is known before any field runs, so
                 # it can choose which (point, slot) pairs are worth evaluating.
                 m = self.composer(gx if inv is not None else gx[:, 0], slots, valid, log_g)
-                keep = self._select_slots(m, valid)
+                keep = select_pairs(cfg, m, valid)
                 m_eval = m
-                if keep is not None and self._selects_by_m(K):
+                if keep is not None and selects_by_m(cfg, K):
                     # Renormalised over the evaluated slots: a partition of unity again.
                     m_eval = m * keep
                     m_eval = m_eval / m_eval.sum(dim=-1, keepdim=True).clamp_min(1e-30)
@@ -495,8 +479,8 @@ class SVORF(nn.Module):
         """Tell the model how far its training run is (a fraction in [0, 1], as for the
         learning-rate schedule); sets what depends on it (``bg_chroma_fade``'s ``bg_chroma``
         buffer, ``slot_locality_narrow``'s ``locality_radius``, ``fg_mass``'s
-        ``fg_mass_weight``, ``fg_binary``'s ``fg_binary_weight``, ``photo_l1``'s
-        ``photo_l1_weight``). The training loop calls
+        ``fg_mass_weight``, ``fg_binary``'s ``fg_binary_weight``, ``ray_distortion``'s
+        ``ray_distortion_weight``, ``photo_l1``'s ``photo_l1_weight``). The training loop calls
         it before every step; a no-op without such fields."""
         fade = self.cfg.bg_chroma_fade
         if fade is not None:
@@ -511,6 +495,9 @@ class SVORF(nn.Module):
         if self.cfg.fg_binary is not None:
             lam, p0, p1 = self.cfg.fg_binary
             self.fg_binary_weight.fill_(lam * ramp(progress, p0, p1))
+        if self.cfg.ray_distortion is not None:
+            lam, p0, p1 = self.cfg.ray_distortion
+            self.ray_distortion_weight.fill_(lam * ramp(progress, p0, p1))
         if self.cfg.photo_l1 is not None:
             self.photo_l1_weight.fill_(ramp(progress, *self.cfg.photo_l1))
 
@@ -581,67 +568,10 @@ class SVORF(nn.Module):
             centres = torch.einsum("bij,bkj->bki", frame, centres)
         return centres
 
-    def _selects_by_m(self, K: int) -> bool:
-        """Whether slot_topk / slot_keep_mass drop slots by m (slot_guided only)."""
-        cfg = self.cfg
-        return cfg.composition == "slot_guided" and (
-            0 < cfg.slot_topk < K or cfg.slot_keep_mass < 1.0
-        )
-
-    def _select_slots(self, m: Tensor, valid: Tensor | None) -> Tensor | None:
-        """(point, slot) pairs whose field is evaluated, [B, P, K] bool; None = all.
-
-        Valid pairs (unmasked slots; inside ``fg_box`` for foreground slots) that pass the
-        ``slot_topk`` / ``slot_keep_mass`` limits on the composition probabilities m [B, P, K].
-        """
-        cfg = self.cfg
-        K = m.shape[-1]
-        keep = None
-        if self._selects_by_m(K):
-            # Rank the slots of every point without a sort (sorting 8 values along the last
-            # axis is slow on CPU), on the slot-major [B, K, P] layout the composer produces:
-            # slot j is above slot k if m_j > m_k. Tied slots are all kept or all dropped
-            # together (never fewer kept than the limits ask).
-            mt = m.detach().float().transpose(1, 2)  # [B, K, P]
-            mj = mt[:, None, :, :]  # [B, 1, K(j), P]
-            above = mj > mt[:, :, None, :]  # [B, K(k), K(j), P]
-            keep_t = torch.ones_like(mt, dtype=torch.bool)
-            if cfg.slot_keep_mass < 1.0:
-                # Keep a slot while the mass of the slots above it is below the target (the
-                # top slot always stays; the kept mass reaches slot_keep_mass).
-                keep_t = (above * mj).sum(dim=2) < cfg.slot_keep_mass
-            if 0 < cfg.slot_topk < K:
-                keep_t = keep_t & (above.sum(dim=2) < cfg.slot_topk)
-            keep = keep_t.transpose(1, 2)  # [B, P, K]
-        if valid is not None:
-            keep = valid.expand_as(m) if keep is None else keep & valid
-        return keep
-
     def _eval_slots(self, params, gx: Tensor, gd: Tensor, keep: Tensor | None):
-        """Per-slot fields sigma_k [B, K, P], rgb_k [B, K, P, 3] (float32).
-
-        keep: [B, P, K] bool or None; where False the field is 0 and (when few pairs are
-        kept) not computed at all (``ObjectFields.eval_pairs``). When most pairs are kept,
-        the dense batched evaluation is cheaper than gathering them: it is used and the
-        dropped pairs are zeroed, with the same result.
-        """
-        fields = self.fields
-        if self.pair_count is not None:
-            B, _, P, _ = gx.shape
-            total = B * params.num_slots * P
-            self.pair_count.total += total
-            self.pair_count.kept += total if keep is None else float(keep.sum())
-        if keep is None:
-            sigma_k, rgb_k = fields.eval_fields(params, gx, gd)
-            return sigma_k.float(), rgb_k.float()
-        sel = keep.transpose(1, 2)  # [B, K, P]
-        frac = float(sel.float().mean())
-        if frac > _DENSE_ABOVE:
-            sigma_k, rgb_k = fields.eval_fields(params, gx, gd)
-            if frac == 1.0:
-                return sigma_k.float(), rgb_k.float()
-            return sigma_k.float() * sel, rgb_k.float() * sel[..., None]
-        return fields.eval_pairs(params, gx, gd, sel)
+        """Per-slot fields sigma_k [B, K, P], rgb_k [B, K, P, 3] (float32) at the kept pairs
+        (:func:`svorf.pairs.eval_kept`; counted while :meth:`count_pairs` is on)."""
+        return eval_kept(self.fields, params, gx, gd, keep, self.pair_count)
 
     def count_pairs(self) -> PairCount:
         """Count the (point, slot) pairs the fields evaluate from now on.
@@ -699,7 +629,8 @@ class SVORF(nn.Module):
         Returns:
             total (scalar, differentiable) and detached scalars: "mse", "mse_coarse",
             "connectivity", "psnr", "total" (and "fg_mass" with ``ModelConfig.fg_mass``,
-            "soft_matter" with ``ModelConfig.fg_binary``).
+            "soft_matter" with ``ModelConfig.fg_binary``, "ray_distortion" with
+            ``ModelConfig.ray_distortion``).
         """
         if target_rgb.shape != out.rgb.shape:
             raise ValueError(
@@ -731,6 +662,13 @@ class SVORF(nn.Module):
                     "with need_aux=True"
                 )
             total = total + self.fg_binary_weight * out.soft_matter
+        if cfg.ray_distortion is not None:
+            if out.ray_distortion is None:
+                raise ValueError(
+                    "SVORF.loss: ModelConfig.ray_distortion needs the composed ray's "
+                    "distortion; render with need_aux=True"
+                )
+            total = total + self.ray_distortion_weight * out.ray_distortion
         stats = {
             "mse": mse.detach(),
             "mse_coarse": mse_c.detach(),
@@ -742,6 +680,8 @@ class SVORF(nn.Module):
             stats["fg_mass"] = fg_mass.detach()
         if cfg.fg_binary is not None:
             stats["soft_matter"] = out.soft_matter.detach()
+        if cfg.ray_distortion is not None:
+            stats["ray_distortion"] = out.ray_distortion.detach()
         return total, stats
 
     def _photometric(self, rgb: Tensor, target: Tensor, mse: Tensor) -> Tensor:

@@ -242,13 +242,13 @@ def test_fg_box_around_the_whole_box_is_bit_identical():
 @pytest.mark.parametrize("composition", ["slot_guided", "density_weighted"])
 def test_fg_box_sparse_model_matches_dense_masked(composition, monkeypatch):
     """The model with fg_box computes only in-box foreground pairs, same result as zeroing."""
-    import svorf.model as sm
+    import svorf.pairs as sp
 
     model, _ = model_pair(fg_box=1.5, base={"composition": composition})
     imgs = make_images(2)
     o, d = make_rays(2, 24)
     sparse = model(imgs, o, d)
-    monkeypatch.setattr(sm, "_DENSE_ABOVE", -1.0)  # force dense evaluation + zeroing
+    monkeypatch.setattr(sp, "_DENSE_ABOVE", -1.0)  # force dense evaluation + zeroing
     dense = model(imgs, o, d)
     for name in ("rgb", "depth", "slot_probs", "connectivity"):
         torch.testing.assert_close(
