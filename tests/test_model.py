@@ -960,37 +960,41 @@ def test_soft_matter_prices_only_half_transparent_object_matter():
         soft_matter(half, t, far, torch.ones(1, 1, 2))
 
 
-def test_fg_binary_prices_soft_object_matter(tmp_path):
-    """fg_binary=(lambda, p0, p1): the loss gains w * soft_matter (the object slots' share
-    of the fine pass's half-transparent samples) with w ramped from 0 (before p0) to lambda
-    (from p1 on); the weight is a buffer a checkpoint carries; a gradient step on the price
-    alone lowers it; the default key is unchanged and bad values are refused."""
-    assert "fg_binary" not in ModelConfig().to_dict()
+@pytest.mark.parametrize(
+    "name, term", [("fg_binary", "soft_matter"), ("ray_distortion", "ray_distortion")]
+)
+def test_ramped_price_adds_its_weighted_term(name, term, tmp_path):
+    """fg_binary / ray_distortion = (lambda, p0, p1): the loss gains w * the term the render
+    returns (the object slots' half-transparent matter / the composed ray's distortion),
+    with w ramped from 0 (before p0) to lambda (from p1 on); the weight is a buffer a
+    checkpoint carries; a gradient step on the price alone lowers it; the default key is
+    unchanged and bad values are refused."""
+    assert name not in ModelConfig().to_dict()
     o, d = make_rays(2, 32)
-    model = smoke(fg_binary=(0.5, 0.2, 0.6))
-    assert ModelConfig.from_dict(model.cfg.to_dict()).fg_binary == (0.5, 0.2, 0.6)
+    model = smoke(**{name: (0.5, 0.2, 0.6)})
+    assert getattr(ModelConfig.from_dict(model.cfg.to_dict()), name) == (0.5, 0.2, 0.6)
     plain = smoke()
-    plain.load_state_dict({k: v for k, v in model.state_dict().items() if k != "fg_binary_weight"})
+    plain.load_state_dict({k: v for k, v in model.state_dict().items() if k != f"{name}_weight"})
     images, target = make_images(2), torch.rand(2, 32, 3)
     torch.manual_seed(0)
     out = model(images, o, d)
-    soft = float(out.soft_matter.detach())
-    assert soft > 0.0
+    value = float(getattr(out, term).detach())
+    assert value > 0.0
     base, _ = plain.loss(out, target)
     for progress, w in ((0.0, 0.0), (0.2, 0.0), (0.4, 0.25), (0.6, 0.5), (0.9, 0.5)):
         model.set_progress(progress)
-        assert float(model.fg_binary_weight) == pytest.approx(w)
+        assert float(getattr(model, f"{name}_weight")) == pytest.approx(w)
         total, parts = model.loss(out, target)
-        assert float(parts["soft_matter"]) == pytest.approx(soft, rel=1e-6)
-        assert float(total.detach()) == pytest.approx(float(base.detach()) + w * soft, rel=1e-5)
+        assert float(parts[term]) == pytest.approx(value, rel=1e-6)
+        assert float(total.detach()) == pytest.approx(float(base.detach()) + w * value, rel=1e-5)
     torch.save(model.state_dict(), tmp_path / "m.pt")
-    again = smoke(fg_binary=(0.5, 0.2, 0.6))
+    again = smoke(**{name: (0.5, 0.2, 0.6)})
     again.load_state_dict(torch.load(tmp_path / "m.pt"))
-    assert float(again.fg_binary_weight) == pytest.approx(0.5)
+    assert float(getattr(again, f"{name}_weight")) == pytest.approx(0.5)
 
     def price(m):
         torch.manual_seed(0)
-        return m(images, o, d).soft_matter
+        return getattr(m(images, o, d), term)
 
     before = price(model)
     opt = torch.optim.SGD(model.parameters(), lr=0.5)
@@ -999,10 +1003,10 @@ def test_fg_binary_prices_soft_object_matter(tmp_path):
     opt.step()
     assert float(price(model).detach()) < float(before.detach())
     for bad in ((-0.1, 0.2, 0.6), (0.5, 0.6, 0.2), (0.5, 0.2, 1.5), (0.5, 0.2)):
-        with pytest.raises(ValueError, match="fg_binary"):
-            ModelConfig(fg_binary=bad)
+        with pytest.raises(ValueError, match=name):
+            ModelConfig(**{name: bad})
     no_aux = model.render_rays(model.encode(images), o, d, need_aux=False)
-    assert no_aux.soft_matter is None
+    assert getattr(no_aux, term) is None
     with pytest.raises(ValueError, match="need_aux"):
         model.loss(no_aux, target)
 
