@@ -59,7 +59,14 @@ CHECKPOINT_FORMAT = "svorf-checkpoint-1"
 #: a trained model can be rendered with another value (a probe, not a model: the weights
 #: were trained under the checkpoint's value): the scene priors, and the samples per ray
 #: (the quadrature).
-RENDER_PROBE_FIELDS = ("fg_zmin", "fg_box", "bg_outside_fg", "n_coarse", "n_fine")
+RENDER_PROBE_FIELDS = (
+    "fg_zmin",
+    "fg_box",
+    "bg_outside_fg",
+    "n_coarse",
+    "n_fine",
+    "comp_temperature",
+)
 
 #: Fields that may differ between a checkpoint and the config that resumes it.
 _RESUMABLE_CHANGES = {"steps", "log_every", "ckpt_every", "eval_every", "eval_scenes", "device"}
@@ -372,7 +379,9 @@ def render_probe(model: SVORF, changes: dict[str, Any]) -> SVORF:
     E.g. ``{"fg_zmin": 0.10}`` bars the object slots from the band 0.05-0.10 above the
     floor at render time: how much of the segmentation's error lives there, before a
     training run with that value is spent; ``{"n_fine": 64}`` renders with more samples
-    per ray (is an error the quadrature's?). The model is changed in place and returned.
+    per ray (is an error the quadrature's?); ``{"comp_temperature": 0.5}`` sharpens the
+    slot-guided soft masks m (is an error the masks' softness or the fields'?). The model
+    is changed in place and returned.
 
     Raises:
         ValueError: a field that is not a render-time prior, or a value the config refuses
@@ -385,4 +394,6 @@ def render_probe(model: SVORF, changes: dict[str, Any]) -> SVORF:
             f"on it); fields that can: {', '.join(RENDER_PROBE_FIELDS)}"
         )
     model.cfg = model.cfg.replace(**changes)
+    if "comp_temperature" in changes and hasattr(model.composer, "temperature"):
+        model.composer.temperature = float(model.cfg.comp_temperature)
     return model

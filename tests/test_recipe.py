@@ -127,6 +127,22 @@ def test_comp_temperature_divides_the_composition_logits():
         assert not torch.allclose(a(imgs, o, d).rgb, b(imgs, o, d).rgb)
 
 
+def test_the_render_probe_sets_the_composition_temperature_of_a_trained_model():
+    # render_probe(model, {"comp_temperature": T}) renders as a model built with T does.
+    from svorf.checkpoint import render_probe
+
+    a, b = _model(), _model(comp_temperature=0.25)
+    b.load_state_dict(a.state_dict())
+    imgs, o = torch.rand(1, 3, 32, 32), torch.tensor([0.0, -12.0, 6.0]).expand(1, 8, 3)
+    d = torch.nn.functional.normalize(-o + 0.3 * torch.randn(1, 8, 3), dim=-1)
+    with torch.no_grad():
+        before = a(imgs, o, d).rgb
+        assert render_probe(a, {"comp_temperature": 0.25}) is a
+        assert a.cfg.comp_temperature == 0.25 and a.composer.temperature == 0.25
+        torch.testing.assert_close(a(imgs, o, d).rgb, b(imgs, o, d).rgb)
+        assert not torch.allclose(before, a(imgs, o, d).rgb)
+
+
 def test_nvs_warmup_uses_input_view_rays_first(split, tmp_path, monkeypatch):
     seen = []
     orig = train_mod.RaySampler.sample
