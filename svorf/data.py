@@ -657,12 +657,14 @@ class RaySampler:
         scenes: Tensor | Sequence[int],
         generator: torch.Generator,
         salient_fraction: float | None = None,
+        include_input: bool = False,
     ) -> RayBatch:
         """Build the batch for the given scene positions (CPU tensors).
 
         ``salient_fraction`` overrides the share of rays a salient strategy
         (:data:`~svorf.ray_sampling.SALIENT_RAY_SAMPLING`) draws from salient pixels
-        (0 = uniform); None keeps the strategy's own.
+        (0 = uniform); None keeps the strategy's own. ``include_input`` (novel-view setup
+        only) makes the input view one of the target views (``TrainConfig.input_view_from``).
         """
         draw = self._fn
         if salient_fraction is not None:
@@ -691,7 +693,7 @@ class RaySampler:
         }
         for s, iv in zip(scenes.tolist(), inputs.tolist()):
             if self.nvs:
-                views = torch.tensor([v for v in range(v_all) if v != iv])
+                views = torch.tensor([v for v in range(v_all) if v != iv or include_input])
             else:
                 views = torch.tensor([iv])
             if self.error_map is not None:

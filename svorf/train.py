@@ -601,8 +601,8 @@ def _train_step(
         group["lr"] = lr
     getattr(model, "module", model).set_progress(progress)
     smp = run.sampler_warm if step < cfg.nvs_warmup else run.sampler
-    scenes = smp.sample_scenes(cfg.batch_scenes, run.gen)
-    batch = smp.sample(scenes, run.gen, cfg.salient_share(progress))
+    share, with_input = cfg.salient_share(progress), cfg.input_view_targeted(progress)
+    batch = smp.sample(smp.sample_scenes(cfg.batch_scenes, run.gen), run.gen, share, with_input)
     if run.dctx is not None:
         batch = _batch_rows(batch, run.lo, run.hi)
     batch = batch.to(run.device)

@@ -94,6 +94,13 @@ class TrainConfig:
     an object's edge pixels about 1.8x the floor pixels beside them (measured on cpu-scale
     CLEVR-567 training scenes), which pays a model to grow its objects into the floor.
     None = the strategy's share throughout. A lever (docs/notes/cpu_recipe.md)."""
+    input_view_from: float | None = None
+    """Progress (as for ``lr_decay``) from which the input view is one of the target views
+    of the novel-view setup (``ModelConfig.nvs``): its pixels join the other views' as
+    candidates for each scene's rays, as uORF reconstructs every view, the input
+    included. The input view's segmentation (ARI, FG-ARI) is then fitted directly, not
+    only through the other views. None = never (the paper's novel-view setup: rays from
+    the other views only). A lever (docs/notes/cpu_recipe.md)."""
     nvs_warmup: int = 0
     """Input-view reconstruction warm-up (cpu recipe, docs/notes/cpu_recipe.md): for the first
     this many steps the target rays come from the input view itself, afterwards from the
@@ -155,6 +162,13 @@ class TrainConfig:
             raise ValueError(
                 f"TrainConfig.target_size must be None or >= 8 pixels, got {self.target_size}"
             )
+        if self.input_view_from is not None:
+            object.__setattr__(self, "input_view_from", float(self.input_view_from))
+            if not 0.0 <= self.input_view_from <= 1.0:
+                raise ValueError(
+                    "TrainConfig.input_view_from must be None or a fraction of the run in "
+                    f"[0, 1], got {self.input_view_from}"
+                )
         if self.ray_sampling not in RAY_SAMPLING:
             raise ValueError(
                 f"TrainConfig.ray_sampling must be one of {sorted(RAY_SAMPLING)}, "
@@ -177,8 +191,8 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
-        ``target_size``, ``salient_fade`` and ``ema_decay`` only when set, so that the keys
-        of earlier runs stay valid."""
+        ``target_size``, ``salient_fade``, ``input_view_from`` and ``ema_decay`` only when
+        set, so that the keys of earlier runs stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         if d["salient_fade"] is None:
@@ -189,6 +203,8 @@ class TrainConfig:
             del d["target_size"]
         if not d["ema_decay"]:
             del d["ema_decay"]
+        if d["input_view_from"] is None:
+            del d["input_view_from"]
         return d
 
     @classmethod
@@ -210,6 +226,11 @@ class TrainConfig:
         if self.salient_fade is None:
             return None
         return OBJECT_HEAVY_FRACTION * (1.0 - ramp(progress, *self.salient_fade))
+
+    def input_view_targeted(self, progress: float) -> bool:
+        """Whether the input view is among the target views at ``progress``
+        (``input_view_from``)."""
+        return self.input_view_from is not None and progress >= self.input_view_from
 
     def replace(self, **changes: Any) -> TrainConfig:
         """A copy with ``changes`` (field values) applied and checked."""

@@ -139,6 +139,12 @@ def test_sampler_draws_only_target_views(ds):
     same = RaySampler(ds, rays_per_scene=32, nvs=False)
     b = same.sample([0, 1], g)
     assert bool((b.target_view == b.input_view[:, None]).all())
+    # TrainConfig.input_view_from: the input view joins the other views as a target.
+    many = RaySampler(ds, rays_per_scene=512, nvs=True)
+    b = many.sample([0, 1], g, include_input=True)
+    for i in range(2):
+        views = set(b.target_view[i].tolist())
+        assert int(b.input_view[i]) in views and views == set(range(ds.n_views))
 
 
 def test_sampler_input_size_shrinks_only_the_encoder_input(ds):

@@ -282,9 +282,9 @@ def test_salient_fade_ends_the_run_on_uniform_rays(split, tmp_path, monkeypatch)
     seen = []
     real = RaySampler.sample
 
-    def spy(self, scenes, generator, salient_fraction=None):
+    def spy(self, scenes, generator, salient_fraction=None, include_input=False):
         seen.append(salient_fraction)
-        return real(self, scenes, generator, salient_fraction)
+        return real(self, scenes, generator, salient_fraction, include_input)
 
     monkeypatch.setattr(RaySampler, "sample", spy)
     train(split, tmp_path / "fade", MCFG, cfg, progress=False)
@@ -293,6 +293,29 @@ def test_salient_fade_ends_the_run_on_uniform_rays(split, tmp_path, monkeypatch)
         TrainConfig(ray_sampling="object_heavy", salient_fade=(0.7, 0.5))
     with pytest.raises(ValueError, match="salient_fade fades"):
         TrainConfig(ray_sampling="uniform", salient_fade=(0.5, 0.7))
+
+
+def test_input_view_from_adds_the_input_view_to_the_targets_late(split, tmp_path, monkeypatch):
+    """TrainConfig.input_view_from: the sampler is told to include the input view from that
+    progress on; the field round-trips, is left out of the key while off, and refuses a
+    value outside [0, 1]."""
+    from svorf.data import RaySampler
+
+    assert "input_view_from" not in tcfg().to_dict()
+    cfg = tcfg(steps=4, input_view_from=0.5)
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    seen = []
+    real = RaySampler.sample
+
+    def spy(self, scenes, generator, salient_fraction=None, include_input=False):
+        seen.append(include_input)
+        return real(self, scenes, generator, salient_fraction, include_input)
+
+    monkeypatch.setattr(RaySampler, "sample", spy)
+    train(split, tmp_path / "iv", MCFG, cfg, progress=False)
+    assert seen == [False, False, True, True]  # progress 0, 1/4, 1/2, 3/4
+    with pytest.raises(ValueError, match="input_view_from must be"):
+        TrainConfig(input_view_from=1.5)
 
 
 def test_cli_train_refuses_data_coarser_than_target_size(split, tmp_path, capsys, monkeypatch):
