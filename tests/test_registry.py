@@ -88,7 +88,7 @@ def test_config_key_names_what_is_learned():
     assert set(changed) == set(BOOKKEEPING_FIELDS)
     assert config_key(m, t.replace(**changed)) == key
     every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
-    # target_size, salient_fade and ema_decay are written only when set, so that the keys
+    # target_size, salient_fade, input_view_from and ema_decay are written only when set, so the keys
     # of earlier runs stay valid (the cpu recipe sets ema_decay)
     unset = {"target_size", "salient_fade", "input_view_from"}
     assert t.ema_decay == 0.999 and set(learning_fields(t)) == every - unset
