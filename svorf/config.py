@@ -387,6 +387,15 @@ class ModelConfig:
     nearer a neighbour's centre than its top is. In the cpu recipe: it lifted FG-ARI at
     both seeds by leaving fewer objects to the background, not by splitting large objects
     less (docs/notes/cpu_recipe.md). False = a ball (paper)."""
+    slot_relative: bool = False
+    """Object slots' fields see positions relative to their ``slot_locality`` centre c_k:
+    gamma(x - c_k) instead of gamma(x) (the background slot and the composition keep
+    gamma(x); c_k enters detached, placed by the locality envelope). A slot's field then
+    describes its object around the origin, whatever its place in the scene, as
+    object-centric fields with per-object frames do (uOCF, Luo et al. 2024); with gamma(x)
+    it must place the object's edges through the positional encoding's global
+    frequencies. Needs ``slot_locality`` (so not with ``composition="slot_mixer"``).
+    False = gamma(x) (paper). A lever (docs/notes/cpu_recipe.md)."""
     slot_centre: SlotCentre = "learned"
     """Where the ``slot_locality`` centres come from. "learned": c_k = e * tanh(Linear(s_k)).
     "attention": geometry instead of a learned map: each token of the feature map is cast
@@ -527,6 +536,7 @@ _OMITTED_WHEN_FALSE = (
     "bg_achromatic",
     "clip_floor_front",
     "slot_locality_xy",
+    "slot_relative",
     "fg_binary_all",
     "enc_bf16",
 )

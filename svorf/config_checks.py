@@ -178,6 +178,11 @@ def check(cfg: Any) -> None:
             "ModelConfig.slot_locality_xy shapes slot_locality's envelope: set "
             "slot_locality (a radius) too"
         )
+    if cfg.slot_relative and cfg.slot_locality is None:
+        raise ValueError(
+            "ModelConfig.slot_relative measures positions from slot_locality's centres: set "
+            "slot_locality (a radius) too"
+        )
     if cfg.slot_centre != "learned" and cfg.slot_locality is None:
         raise ValueError(
             f"ModelConfig.slot_centre={cfg.slot_centre!r} places slot_locality centres: set "

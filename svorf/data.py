@@ -151,10 +151,15 @@ def rays_at(K: Tensor, cam_to_world: Tensor, u: Tensor, v: Tensor) -> tuple[Tens
     return _rays_from_kinv(torch.linalg.inv(K.double()), cam_to_world, u, v)
 
 
-def _rays_from_kinv(kinv: Tensor, cam_to_world: Tensor, u: Tensor, v: Tensor):
-    """:func:`rays_at` with ``K^-1`` (float64) given: the dataset inverts each K once."""
+def _rays_from_kinv(
+    kinv: Tensor, cam_to_world: Tensor, u: Tensor, v: Tensor, offset: Tensor | None = None
+):
+    """:func:`rays_at` with ``K^-1`` (float64) given: the dataset inverts each K once.
+    ``offset`` [..., 2] (pixels, column then row) moves each ray off its pixel centre."""
     rot = cam_to_world.double()[..., :3, :3]
     uc, vc = u.double() + 0.5, v.double() + 0.5
+    if offset is not None:
+        uc, vc = uc + offset[..., 0].double(), vc + offset[..., 1].double()
     # d_cam = K^-1 [u, v, 1]; K^-1 is upper triangular for every K a camera writes, but
     # the full product costs nothing and keeps skewed or odd intrinsics right.
     d_cam = torch.stack(
@@ -531,13 +536,16 @@ class MultiViewDataset(torch.utils.data.Dataset):
             z_scale=z_scale,
         )
 
-    def rays(self, i: int, views: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor]:
+    def rays(
+        self, i: int, views: Tensor, pixels: Tensor, offset: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """``(rays_o [R, 3], rays_d [R, 3])`` of scene position ``i`` through flat pixel
         indices ``pixels`` [R] (``row * W + column``) of ``views`` [R]: the same values as
-        ``self[i].rays_d[views, row, column]``, computed for these pixels only."""
+        ``self[i].rays_d[views, row, column]``, computed for these pixels only; with
+        ``offset`` [R, 2] (pixels, column then row) through those points off the centres."""
         w = self.image_hw[1]
         kinv, c2w = self._Kinv64[i][views], self._c2w64[i][views]
-        rays_d, _ = _rays_from_kinv(kinv, c2w, pixels % w, pixels // w)
+        rays_d, _ = _rays_from_kinv(kinv, c2w, pixels % w, pixels // w, offset)
         return self._rays_o[i][views], rays_d
 
     def images(self, i: int, views: Tensor | Sequence[int] | None = None) -> Tensor:
@@ -658,6 +666,7 @@ class RaySampler:
         generator: torch.Generator,
         salient_fraction: float | None = None,
         include_input: bool = False,
+        pixel_jitter: float = 0.0,
     ) -> RayBatch:
         """Build the batch for the given scene positions (CPU tensors).
 
@@ -665,6 +674,10 @@ class RaySampler:
         (:data:`~svorf.ray_sampling.SALIENT_RAY_SAMPLING`) draws from salient pixels
         (0 = uniform); None keeps the strategy's own. ``include_input`` (novel-view setup
         only) makes the input view one of the target views (``TrainConfig.input_view_from``).
+        ``pixel_jitter`` > 0 moves each ray off its pixel centre by a uniform draw from a
+        square of that side (pixels; ``TrainConfig.pixel_jitter``), the target still the
+        pixel's colour; the offsets are drawn after the pixels, which stay those drawn
+        without it, and 0 draws nothing (the batches of earlier versions).
         """
         draw = self._fn
         if salient_fraction is not None:
@@ -711,6 +724,15 @@ class RaySampler:
             out["target_pixel"].append(pix)
             out["input_c2w"].append(ds._c2w[s][iv].float())
         batch = {k: torch.stack(x) for k, x in out.items()}
+        if pixel_jitter > 0:  # drawn after every pixel, so the pixels are those without it
+            offset = torch.rand(len(scenes), r, 2, generator=generator, dtype=torch.float64)
+            offset = (offset - 0.5) * pixel_jitter
+            batch["rays_d"] = torch.stack(
+                [
+                    ds.rays(s, batch["target_view"][i], batch["target_pixel"][i], offset[i])[1]
+                    for i, s in enumerate(scenes.tolist())
+                ]
+            )
         if self.input_size is not None and (self.input_size,) * 2 != (h, w):
             size = (self.input_size, self.input_size)
             batch["images"] = F.interpolate(batch["images"], size=size, mode="area")

@@ -7,7 +7,8 @@ warm-up, paper appendix A; the optimizer in ``svorf.optim``) -> checkpoints in a
 (``TrainConfig``, ``run_configs``, ``config_key``) are in ``svorf.train_config``, what the
 scales, presets and the cpu recipe set in ``svorf.registry``. This module re-exports the
 public names of ``train_config``, ``checkpoint`` and ``predict`` (their old home): callers
-keep importing them from ``svorf.train``.
+keep importing them from ``svorf.train``; ``TrainSummary``, ``TrainingDiverged`` and the
+wall-time ``Budget`` live in ``svorf.run_records``.
 
 A run folder holds::
 
@@ -23,7 +24,7 @@ optimizer), :func:`_start` (:func:`_resume` from the checkpoint or start afresh,
 ``--init-from``, ``config.json``), then per optimizer step :func:`_train_step` (learning
 rate, batch, forward, backward, with the NaN guards :func:`_guard_loss` and
 :func:`_guard_grad`), the log line, the held-out evaluation (:func:`_run_eval`) and the
-checkpoint (:func:`_save`), all timed by the wall-time budget (:class:`_Budget`); finally
+checkpoint (:func:`_save`), all timed by the wall-time budget (:class:`Budget`); finally
 :func:`_finish` writes the summary.
 
 Determinism: parameters are initialised after ``torch.manual_seed(seed)``; scenes,
@@ -45,13 +46,10 @@ metrics such as ARI are plugged in by the caller through ``eval_fn``.
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
-import resource
-import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,7 +57,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from scenefmt import atomic_write_bytes, atomic_write_json
+from scenefmt import atomic_write_json
 from svorf import distributed
 from svorf.checkpoint import (
     CHECKPOINT_FORMAT,
@@ -80,6 +78,14 @@ from svorf.model import SVORF
 from svorf.optim import WeightAverage, grad_norm, make_optimizer
 from svorf.predict import ScenePrediction, default_eval, predict_scene
 from svorf.ray_sampling import ErrorMap
+from svorf.run_records import (
+    Budget,
+    TrainingDiverged,
+    TrainSummary,
+    append_jsonl,
+    peak_rss_mb,
+    truncate_jsonl,
+)
 from svorf.train_config import (
     BOOKKEEPING_FIELDS,
     CPU_RECIPE,
@@ -140,95 +146,6 @@ __all__ = [
 #: Signature of a held-out evaluation hook: ``eval_fn(model, dataset) -> {name: float}``.
 #: The model is in eval mode and the global RNG is forked around the call.
 EvalFn = Callable[[SVORF, MultiViewDataset], dict[str, float]]
-
-
-class TrainingDiverged(RuntimeError):
-    """The loss or a gradient became NaN/Inf; the last good checkpoint is left untouched.
-
-    Attributes:
-        step: the optimizer step (1-based, as in ``log.jsonl``) whose loss or gradient was
-            not finite.
-    """
-
-    def __init__(self, message: str, step: int) -> None:
-        super().__init__(message)
-        self.step = int(step)
-
-    def __reduce__(self) -> tuple[Any, ...]:  # picklable across processes (Ray, torchrun)
-        return (type(self), (str(self), self.step))
-
-
-@dataclass(frozen=True)
-class TrainSummary:
-    """What :func:`train` returns; :meth:`to_dict` is ``summary.json``.
-
-    Attributes:
-        steps: optimizer steps the run has finished (the checkpoint's step).
-        start_step: the step this call started from (0, or the resumed checkpoint's).
-        final_loss: the last step's loss (NaN before any step).
-        wall_s: seconds of this call.
-        train_wall_s: training seconds of all calls (evaluation and checkpointing excluded).
-        s_per_step: training seconds per step of this call (NaN: no step run).
-        peak_rss_mb: peak resident memory of the process in MiB.
-        params: the model's parameter count.
-        device: the torch device trained on.
-        bf16_autocast_active: what ``bf16_autocast`` resolved to on this device.
-        checkpoint / log: paths of ``checkpoint.pt`` and ``log.jsonl``.
-        dataset_fingerprint: the training split's fingerprint.
-        init_from: what started the run's weights (:func:`init_weights_from`), or None.
-        world_size: ranks under torchrun, None in a single process (not in the JSON).
-    """
-
-    steps: int
-    start_step: int
-    final_loss: float
-    wall_s: float
-    train_wall_s: float
-    s_per_step: float
-    peak_rss_mb: float
-    params: int
-    device: str
-    bf16_autocast_active: bool
-    checkpoint: str
-    log: str
-    dataset_fingerprint: str
-    init_from: dict[str, Any] | None = None
-    world_size: int | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        """The summary as ``summary.json`` holds it."""
-        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "world_size"}
-        if self.world_size is not None:
-            d["world_size"] = self.world_size
-        return d
-
-
-# --------------------------------------------------------------------------- run folder
-
-
-def _truncate_jsonl(path: Path, max_step: int) -> None:
-    """Drop lines logged after the checkpoint (a crash may have logged past it)."""
-    if not path.is_file():
-        return
-    keep = []
-    for line in path.read_text().splitlines():
-        try:
-            if json.loads(line)["step"] <= max_step:
-                keep.append(line)
-        except (ValueError, KeyError, TypeError):
-            continue  # a torn last line
-    atomic_write_bytes(path, "".join(x + "\n" for x in keep).encode())
-
-
-def _append_jsonl(path: Path, row: dict[str, Any]) -> None:
-    with open(path, "a") as f:
-        f.write(json.dumps(row, sort_keys=True) + "\n")
-
-
-def _peak_rss_mb() -> float:
-    # ru_maxrss is KiB on Linux, bytes on macOS.
-    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return r / (1024.0 * 1024.0) if sys.platform == "darwin" else r / 1024.0
 
 
 # --------------------------------------------------------------------------- training
@@ -295,7 +212,7 @@ def train(
     cfg = run.train_cfg
     bar = _progress_bar(run) if progress and run.main else None
     run.model.train()
-    budget = _Budget(run.wall_offset, max_wall_s)
+    budget = Budget(run.wall_offset, max_wall_s)
     last_log_t, last_log_step = budget.t0, run.start
     params = [p for p in run.model.parameters() if p.requires_grad]
     try:
@@ -532,8 +449,8 @@ def _resume(run: _Run, data_dir: str | os.PathLike) -> None:
     # would otherwise stay alive (a second copy of the model) for the whole run.
     del ckpt
     if run.main:
-        _truncate_jsonl(run.log_path, run.start)
-        _truncate_jsonl(run.eval_path, run.start)
+        truncate_jsonl(run.log_path, run.start)
+        truncate_jsonl(run.eval_path, run.start)
 
 
 def _progress_bar(run: _Run) -> Any:
@@ -547,42 +464,6 @@ def _progress_bar(run: _Run) -> Any:
         unit="step",
         dynamic_ncols=True,
     )
-
-
-class _Budget:
-    """The run's training wall time: time since the loop started, less the pauses
-    (evaluation, checkpoint writing), plus the earlier calls' time; and the budget
-    ``max_wall_s`` of a time-budgeted run (None = steps only)."""
-
-    def __init__(self, wall_offset: float, max_wall_s: float | None) -> None:
-        self.t0 = time.perf_counter()
-        self.paused = 0.0
-        self.wall_offset = wall_offset
-        self.max_wall_s = max_wall_s
-
-    def wall(self, now: float) -> float:
-        """Training wall time at ``now`` (a ``time.perf_counter()`` value)."""
-        return self.wall_offset + now - self.t0 - self.paused
-
-    def progress(self, step: int, steps: int) -> float:
-        """How far the run is, for the learning-rate schedule: ``step / steps``, or the
-        wall-time fraction of the budget when that is larger."""
-        progress = step / steps
-        if self.max_wall_s is not None:
-            now_wall = self.wall(time.perf_counter())
-            progress = max(progress, now_wall / self.max_wall_s if self.max_wall_s > 0 else 1.0)
-        return progress
-
-    def spent(self, wall: float) -> bool:
-        """Whether the budget is used up at training wall time ``wall``."""
-        return self.max_wall_s is not None and wall >= self.max_wall_s
-
-    @contextlib.contextmanager
-    def paused_while(self) -> Iterator[None]:
-        """Time spent inside is not training time."""
-        tp = time.perf_counter()
-        yield
-        self.paused += time.perf_counter() - tp
 
 
 def _train_step(
@@ -602,7 +483,8 @@ def _train_step(
     getattr(model, "module", model).set_progress(progress)
     smp = run.sampler_warm if step < cfg.nvs_warmup else run.sampler
     share, with_input = cfg.salient_share(progress), cfg.input_view_targeted(progress)
-    batch = smp.sample(smp.sample_scenes(cfg.batch_scenes, run.gen), run.gen, share, with_input)
+    scenes = smp.sample_scenes(cfg.batch_scenes, run.gen)
+    batch = smp.sample(scenes, run.gen, share, with_input, cfg.pixel_jitter)
     if run.dctx is not None:
         batch = _batch_rows(batch, run.lo, run.hi)
     batch = batch.to(run.device)
@@ -692,7 +574,7 @@ def _log_step(
     steps_per_s: float,
 ) -> None:
     """Append step ``done``'s line to ``log.jsonl``."""
-    _append_jsonl(
+    append_jsonl(
         run.log_path,
         {
             "step": done,
@@ -719,7 +601,7 @@ def _run_eval(run: _Run, eval_fn: EvalFn | None, step: int, wall: float) -> None
             metrics = fn(model, run.eval_ds)
     finally:
         model.train()
-    _append_jsonl(
+    append_jsonl(
         run.eval_path,
         {"step": step, "wall_s": round(wall, 3), **{k: float(v) for k, v in metrics.items()}},
     )
@@ -745,7 +627,7 @@ def _save(run: _Run, step: int, wall: float) -> None:
     )
 
 
-def _finish(run: _Run, budget: _Budget) -> TrainSummary:
+def _finish(run: _Run, budget: Budget) -> TrainSummary:
     """The run summary (written to ``summary.json`` by the main process)."""
     elapsed = time.perf_counter() - budget.t0
     end = run.saved if run.saved is not None else run.start
@@ -758,7 +640,7 @@ def _finish(run: _Run, budget: _Budget) -> TrainSummary:
         wall_s=round(elapsed, 3),
         train_wall_s=round(run.wall_offset + elapsed - paused, 3),
         s_per_step=round((elapsed - paused) / steps_run, 5) if steps_run else math.nan,
-        peak_rss_mb=round(_peak_rss_mb(), 1),
+        peak_rss_mb=round(peak_rss_mb(), 1),
         params=run.model.count_parameters(),
         device=str(run.device),
         # What bf16_autocast resolved to on this device ("auto": native bf16 only).

@@ -101,6 +101,14 @@ class TrainConfig:
     included. The input view's segmentation (ARI, FG-ARI) is then fitted directly, not
     only through the other views. None = never (the paper's novel-view setup: rays from
     the other views only). A lever (docs/notes/cpu_recipe.md)."""
+    pixel_jitter: float = 0.0
+    """Where inside its pixel a training ray passes: through a point drawn uniformly from a
+    square of this side (in pixels) around the pixel centre, the target still the pixel's
+    colour. 0 = the centre (the paper). 1 = anywhere in the pixel: the field is fitted to
+    the pixel's area, as the camera's pixel integrates it, not to one point per pixel, so
+    between two pixel centres an edge is supervised rather than left to the fields'
+    interpolation. Evaluation and rendering keep the centres. A lever
+    (docs/notes/cpu_recipe.md)."""
     nvs_warmup: int = 0
     """Input-view reconstruction warm-up (cpu recipe, docs/notes/cpu_recipe.md): for the first
     this many steps the target rays come from the input view itself, afterwards from the
@@ -162,6 +170,12 @@ class TrainConfig:
             raise ValueError(
                 f"TrainConfig.target_size must be None or >= 8 pixels, got {self.target_size}"
             )
+        object.__setattr__(self, "pixel_jitter", float(self.pixel_jitter))
+        if not 0.0 <= self.pixel_jitter <= 1.0:
+            raise ValueError(
+                "TrainConfig.pixel_jitter must be in [0, 1] (pixels; 0 = through the pixel "
+                f"centre, 1 = anywhere in the pixel), got {self.pixel_jitter}"
+            )
         if self.input_view_from is not None:
             object.__setattr__(self, "input_view_from", float(self.input_view_from))
             if not 0.0 <= self.input_view_from <= 1.0:
@@ -191,8 +205,8 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
-        ``target_size``, ``salient_fade``, ``input_view_from`` and ``ema_decay`` only when
-        set, so that the keys of earlier runs stay valid."""
+        ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter`` and
+        ``ema_decay`` only when set, so that the keys of earlier runs stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         if d["salient_fade"] is None:
@@ -205,6 +219,8 @@ class TrainConfig:
             del d["ema_decay"]
         if d["input_view_from"] is None:
             del d["input_view_from"]
+        if not d["pixel_jitter"]:
+            del d["pixel_jitter"]
         return d
 
     @classmethod

@@ -147,6 +147,35 @@ def test_sampler_draws_only_target_views(ds):
         assert int(b.input_view[i]) in views and views == set(range(ds.n_views))
 
 
+def test_sampler_pixel_jitter_moves_rays_inside_their_pixels(ds):
+    """TrainConfig.pixel_jitter: the same pixels and target colours as without it, each ray
+    through a point of its own pixel (inv(K) @ [u + .5 + du, v + .5 + dv, 1] rotated to the
+    world, |du|, |dv| <= side / 2), the points spread over the pixel; side 0 draws nothing."""
+    sampler = RaySampler(ds, rays_per_scene=256, nvs=True)
+    plain = sampler.sample([0, 1], torch.Generator().manual_seed(3))
+    zero = sampler.sample([0, 1], torch.Generator().manual_seed(3), pixel_jitter=0.0)
+    for k in plain.__dataclass_fields__:
+        assert torch.equal(getattr(zero, k), getattr(plain, k)), k
+    for side in (1.0, 0.5):
+        b = sampler.sample([0, 1], torch.Generator().manual_seed(3), pixel_jitter=side)
+        for k in ("target_rgb", "target_view", "target_pixel", "images", "rays_o"):
+            assert torch.equal(getattr(b, k), getattr(plain, k)), k
+        assert not torch.equal(b.rays_d, plain.rays_d)
+        for i, s in enumerate(b.scenes.tolist()):
+            sv = ds[s]
+            vv, pix = b.target_view[i], b.target_pixel[i]
+            # Back into each view's camera: the ray's point on the image plane.
+            rot = sv.cam_to_world[vv, :3, :3].double()
+            d_cam = torch.einsum("rji,rj->ri", rot, b.rays_d[i].double())
+            uvw = torch.einsum("rij,rj->ri", sv.K[vv].double(), d_cam)
+            du = uvw[:, 0] / uvw[:, 2] - (pix % 32).double() - 0.5
+            dv = uvw[:, 1] / uvw[:, 2] - (pix // 32).double() - 0.5
+            off = torch.stack([du, dv], -1)
+            assert float(off.abs().max()) <= side / 2 + 1e-4
+            assert float(off.abs().max()) > side / 2 * 0.9  # spread over the square
+            assert float(off.abs().mean()) > side / 8
+
+
 def test_sampler_input_size_shrinks_only_the_encoder_input(ds):
     """TrainConfig.target_size's sampler: the input view is area-averaged down to
     input_size (what the dataset's own resize would give), the target rays and colours stay

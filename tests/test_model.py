@@ -1188,3 +1188,30 @@ def test_photo_l1_moves_the_photometric_term_to_absolute_error():
             assert torch.allclose(dr, expect, atol=1e-9)
     with pytest.raises(ValueError, match="photo_l1 must be"):
         ModelConfig(photo_l1=(0.2,))
+
+
+def test_slot_relative_fields_move_with_their_centres():
+    """slot_relative=True: an object slot's field is gamma(x - c_k), so moving the scene's
+    points and every centre by the same step leaves the object slots' densities and colours
+    unchanged (the envelope moves too); the background slot keeps gamma(x). Without it the
+    object fields change. Off by default and out of the key; needs slot_locality."""
+    assert "slot_relative" not in ModelConfig().to_dict()
+    step = torch.tensor([0.7, -0.4, 0.3])
+    g = torch.Generator().manual_seed(1)
+    t = torch.sort(torch.rand(2, 8, 6, generator=g) * 8 + 8, dim=-1).values
+    o, d = make_rays(2, 8)
+    is_bg = torch.zeros(2, 3, dtype=torch.bool)
+    is_bg[:, -1] = True
+    for rel in (True, False):
+        model = smoke(num_slots=3, slot_locality=0.8, slot_relative=rel).eval()
+        assert ModelConfig.from_dict(model.cfg.to_dict()).slot_relative is rel
+        slots = model.encode(make_images(2))
+        params, c = model.fields.params(slots), model._centres(slots)
+        q = model._query(model.query_context(slots, params, o, d, None, is_bg, centres=c), t)
+        ctx = model.query_context(slots, params, o + step, d, None, is_bg, centres=c + step)
+        moved = model._query(ctx, t)
+        same_obj = torch.allclose(q.sigma_k[:, :-1], moved.sigma_k[:, :-1], rtol=1e-4, atol=1e-6)
+        assert same_obj is rel
+        assert not torch.allclose(q.sigma_k[:, -1], moved.sigma_k[:, -1], atol=1e-5)
+    with pytest.raises(ValueError, match="slot_relative"):
+        ModelConfig(slot_relative=True)

@@ -88,13 +88,15 @@ def test_config_key_names_what_is_learned():
     assert set(changed) == set(BOOKKEEPING_FIELDS)
     assert config_key(m, t.replace(**changed)) == key
     every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
-    # target_size, salient_fade, input_view_from and ema_decay are written only when set, so the keys
-    # of earlier runs stay valid (the cpu recipe sets ema_decay)
-    unset = {"target_size", "salient_fade", "input_view_from"}
+    # target_size, salient_fade, input_view_from, pixel_jitter and ema_decay are written only
+    # when set, so the keys of earlier runs stay valid (the cpu recipe sets ema_decay)
+    unset = {"target_size", "salient_fade", "input_view_from", "pixel_jitter"}
     assert t.ema_decay == 0.999 and set(learning_fields(t)) == every - unset
     plain = t.replace(ema_decay=0.0)
     assert set(learning_fields(plain)) == every - unset - {"ema_decay"}
-    finer = t.replace(target_size=128, salient_fade=(0.5, 0.7), input_view_from=0.5)
+    finer = t.replace(
+        target_size=128, salient_fade=(0.5, 0.7), input_view_from=0.5, pixel_jitter=1.0
+    )
     assert set(learning_fields(finer)) == every and config_key(m, finer) != key
     assert config_key(m, plain) != key
     assert config_key(m, t.replace(seed=1)) != key

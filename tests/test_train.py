@@ -282,9 +282,9 @@ def test_salient_fade_ends_the_run_on_uniform_rays(split, tmp_path, monkeypatch)
     seen = []
     real = RaySampler.sample
 
-    def spy(self, scenes, generator, salient_fraction=None, include_input=False):
+    def spy(self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0):
         seen.append(salient_fraction)
-        return real(self, scenes, generator, salient_fraction, include_input)
+        return real(self, scenes, generator, salient_fraction, include_input, jitter)
 
     monkeypatch.setattr(RaySampler, "sample", spy)
     train(split, tmp_path / "fade", MCFG, cfg, progress=False)
@@ -307,15 +307,38 @@ def test_input_view_from_adds_the_input_view_to_the_targets_late(split, tmp_path
     seen = []
     real = RaySampler.sample
 
-    def spy(self, scenes, generator, salient_fraction=None, include_input=False):
+    def spy(self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0):
         seen.append(include_input)
-        return real(self, scenes, generator, salient_fraction, include_input)
+        return real(self, scenes, generator, salient_fraction, include_input, jitter)
 
     monkeypatch.setattr(RaySampler, "sample", spy)
     train(split, tmp_path / "iv", MCFG, cfg, progress=False)
     assert seen == [False, False, True, True]  # progress 0, 1/4, 1/2, 3/4
     with pytest.raises(ValueError, match="input_view_from must be"):
         TrainConfig(input_view_from=1.5)
+
+
+def test_pixel_jitter_reaches_the_sampler_and_is_keyed_only_when_on(split, tmp_path, monkeypatch):
+    """TrainConfig.pixel_jitter: passed to every batch; left out of the key while 0 (earlier
+    runs keep their keys), round-trips, and refuses a side outside [0, 1]."""
+    from svorf.data import RaySampler
+
+    assert "pixel_jitter" not in tcfg().to_dict()
+    cfg = tcfg(steps=2, pixel_jitter=1)
+    assert cfg.pixel_jitter == 1.0 and cfg.to_dict()["pixel_jitter"] == 1.0
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    seen = []
+    real = RaySampler.sample
+
+    def spy(self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0):
+        seen.append(jitter)
+        return real(self, scenes, generator, salient_fraction, include_input, jitter)
+
+    monkeypatch.setattr(RaySampler, "sample", spy)
+    train(split, tmp_path / "pj", MCFG, cfg, progress=False)
+    assert seen == [1.0, 1.0]
+    with pytest.raises(ValueError, match="pixel_jitter must be in"):
+        TrainConfig(pixel_jitter=1.5)
 
 
 def test_cli_train_refuses_data_coarser_than_target_size(split, tmp_path, capsys, monkeypatch):
