@@ -209,10 +209,10 @@ def step_rate_note(models: list[dict[str, Any]], spread: float = 1.25) -> str | 
 
 
 #: Training speeds (steps per minute, alone on 2 cores) at which the cpu recipe's CLEVR-567
-#: results were measured: its 60-minute verdict held at 33,252-38,291 steps (seeds 0 and 1,
-#: 2026-11-25/26; docs/notes/cpu_recipe.md). On machines at about half that rate the same
-#: command made about 20,000 steps and missed the verdict at both seeds.
-RECIPE_STEPS_PER_MINUTE = (554.0, 638.0)
+#: results were measured: 25,606-25,744 steps in 60 minutes and 51,282-52,765 in 120 (seeds
+#: 0 and 1, 2026-11-30; docs/notes/cpu_recipe.md). The 120-minute models, at about twice the
+#: steps, scored FG-ARI 1.0-5.2 points above the 60-minute ones.
+RECIPE_STEPS_PER_MINUTE = (427.0, 440.0)
 
 
 def recipe_rate_note(models: list[dict[str, Any]], below: float = 0.8) -> str | None:
@@ -244,9 +244,9 @@ def recipe_rate_note(models: list[dict[str, Any]], below: float = 0.8) -> str | 
         "The cpu recipe's model trained slower than on the machines its results were "
         "measured on: "
         + "; ".join(slow)
-        + f". Those made {lo:.0f}-{hi:.0f} steps per minute alone on 2 cores, and the "
-        "60-minute CLEVR-567 verdict held there at 33,000-38,000 steps "
-        "(docs/notes/cpu_recipe.md); at about half that rate the 60-minute command made "
-        "about 20,000 steps and missed the verdict at both seeds. Compare models by steps "
+        + f". Those made {lo:.0f}-{hi:.0f} steps per minute alone on 2 cores (about 25,700 "
+        "steps in 60 minutes, where the CLEVR-567 verdict held at seeds 0 and 1; "
+        "docs/notes/cpu_recipe.md), and at 120 minutes, about twice the steps, FG-ARI was "
+        "1.0-5.2 points higher: fewer steps cost points. Compare models by steps "
         "(models), not only by minutes."
     )
