@@ -626,3 +626,21 @@ def test_speedbench_report_table_and_json(tmp_path):
     assert rec["base_overrides"]["slot_locality"] == recipe_model_levers()["slot_locality"]
     assert all(r["overrides"]["slot_locality"] for r in rec["variants"])
     assert rec["variants"][0]["rgb_max_err"] == 0.0
+
+
+def test_compare_train_steps_times_every_model_against_the_first():
+    from benchmark.tools.speedbench import compare_train_steps, make_batch
+    from svorf.train import run_configs
+
+    mcfg, _ = run_configs("smoke", "synthetic")
+    torch.manual_seed(0)
+    models = {"a": SVORF(mcfg).train(), "b": SVORF(mcfg.replace(mlp_width=24)).train()}
+    out = compare_train_steps(models, make_batch(mcfg, 1, 16), repeats=2, warmup=1)
+    assert out["repeats"] == 2 and out["warmup"] == 1
+    assert (out["batch_scenes"], out["rays_per_scene"]) == (1, 16)
+    assert list(out["median_s"]) == ["a", "b"] and all(t > 0 for t in out["median_s"].values())
+    assert out["ratio"]["a"] == 1.0
+    assert out["ratio"]["b"] == out["median_s"]["b"] / out["median_s"]["a"]
+    # Each timed call was a training step: the last one left its gradients.
+    grads = [p.grad for p in models["b"].parameters() if p.grad is not None]
+    assert grads and any(g.abs().sum() > 0 for g in grads)

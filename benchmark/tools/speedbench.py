@@ -268,6 +268,33 @@ def train_step(model: SVORF, batch) -> None:
     loss.backward()
 
 
+def compare_train_steps(
+    models: dict[str, SVORF], batch, *, repeats: int, warmup: int = 3
+) -> dict[str, Any]:
+    """Median training-step time of each model on one batch, timed interleaved
+    (:func:`time_interleaved`), and each median's ratio to the first model's.
+
+    The side-by-side step price of a config change (the recipe's notes price a lever before
+    training it): ``{"batch_scenes", "rays_per_scene", "threads", "repeats", "warmup",
+    "median_s": {name: s}, "ratio": {name: x}}``.
+    """
+    names = list(models)
+    steps = [lambda m=models[n]: train_step(m, batch) for n in names]
+    times = time_interleaved(steps, repeats=repeats, warmup=warmup)
+    med = {n: statistics.median(t) for n, t in zip(names, times)}
+    first = med[names[0]]
+    images, o = batch[0], batch[1]
+    return {
+        "batch_scenes": int(images.shape[0]),
+        "rays_per_scene": int(o.shape[1]),
+        "threads": torch.get_num_threads(),
+        "repeats": repeats,
+        "warmup": warmup,
+        "median_s": med,
+        "ratio": {n: t / first for n, t in med.items()},
+    }
+
+
 @torch.no_grad()
 def render_errors(model: SVORF, ref: SVORF, batch) -> dict[str, float]:
     """Difference of ``model``'s evaluation render from ``ref``'s on the batch's rays."""
