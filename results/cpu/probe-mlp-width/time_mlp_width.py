@@ -3,7 +3,7 @@
 One training step of each model in turn (interleaved), 2 threads, the recipe's batch
 (4 scenes x 128 rays, random images and rays from ``speedbench.make_batch``), progress 0.9.
 Run from the repository root, alone on the machine:
-    .venv/bin/python results/cpu/probe-mlp-width/time_mlp_width.py 11 > results/cpu/probe-mlp-width/time_mlp_width.json
+    .venv/bin/python results/cpu/probe-mlp-width/time_mlp_width.py 31 > results/cpu/probe-mlp-width/time_mlp_width.json
 """
 
 import json

@@ -3,6 +3,9 @@
 Both models from the same weights, one training step each in turn (interleaved), 2 threads.
 Run from the repository root:
     .venv/bin/python results/cpu/segmentation-60min-slotrel-seed0-amd/time_slot_relative.py 11
+
+time_slot_relative.json beside it was written by the first form of this script (the same
+loop, inlined), where "ratio" is the one number slot_relative / recipe.
 """
 
 import json
