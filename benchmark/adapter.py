@@ -398,6 +398,7 @@ def predict_scene(
     *,
     slots_scene: int | None = None,
     input_view_only: bool = False,
+    refine_steps: int = 0,
 ) -> Prediction:
     """Render the views of scene ``index`` from ``input_view`` with ``model``.
 
@@ -413,6 +414,9 @@ def predict_scene(
             same as None.
         input_view_only: render only ``input_view``; the returned tensors then have
             ``V = 1`` (the input view) instead of every view of the scene.
+        refine_steps: if > 0, the slots are refined this many steps on the pixels of the
+            view they were encoded from before rendering (svorf's test-time slot
+            refinement, ``svorf.refine``); 0 = the encoder's slots.
 
     Returns:
         The :class:`Prediction` (every view, or only the input view).
@@ -427,6 +431,8 @@ def predict_scene(
     if not 0 <= int(input_view) < dataset.n_views:
         raise ValueError(f"input_view must be in [0, {dataset.n_views}), got {input_view}")
     kw: dict[str, Any] = {} if slots_scene is None else {"slots_scene": int(slots_scene)}
+    if refine_steps:
+        kw["refine_steps"] = int(refine_steps)
     if input_view_only:
         dataset, input_view = _InputViewOnly(dataset, input_view), 0
     with torch.no_grad():

@@ -133,6 +133,16 @@ def _parser() -> argparse.ArgumentParser:
         "run's; builds a table over several machines or sittings",
     )
     r.add_argument(
+        "--refine-slots",
+        type=int,
+        default=0,
+        metavar="N",
+        help="table protocols: evaluate with test-time slot refinement, N Adam steps on "
+        "each scene's slots (every network frozen) to reproduce the input view's own pixels "
+        "(default: 0, the encoder's slots as in the paper); reports go to "
+        "OUT/NAME-SCALE-refineN",
+    )
+    r.add_argument(
         "--backend",
         default="local",
         choices=("local", "ray"),
@@ -220,6 +230,7 @@ def _run(args: argparse.Namespace) -> int:
         ("--address", args.address),
         ("--show-config", True if args.show_config else None),
         ("--rows-from", args.rows_from),
+        ("--refine-slots", args.refine_slots or None),
     )
     for flag, value in table_only:
         if value is not None and args.name not in TABLE_PROTOCOLS:
@@ -247,6 +258,7 @@ def _run(args: argparse.Namespace) -> int:
         rows_from=None
         if args.rows_from is None
         else [p.strip() for p in args.rows_from.split(",") if p.strip()],
+        refine_slots=args.refine_slots,
     )
     if args.show_config:
         from benchmark.protocols.tables import MEASURED_ROWS

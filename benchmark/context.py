@@ -177,6 +177,7 @@ class Context:
         no_train: bool = False,
         train_only: list[str] | tuple[str, ...] | None = None,
         rows_from: list[str] | tuple[str, ...] | None = None,
+        refine_slots: int = 0,
     ) -> None:
         if backend not in BACKENDS:
             raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -184,6 +185,10 @@ class Context:
             raise ValueError("--address is a Ray cluster address; pass it with --backend ray")
         self.backend = backend
         self.address = address
+        if isinstance(refine_slots, bool) or not isinstance(refine_slots, int) or refine_slots < 0:
+            raise ValueError(f"--refine-slots must be a whole number >= 0, got {refine_slots!r}")
+        #: Test-time slot refinement steps of every evaluation (0 = the encoder's slots).
+        self.refine_slots = refine_slots
         #: Only reuse finished cached models; rows whose model is not trained stay null.
         self.no_train = bool(no_train)
         if train_only is not None:
@@ -244,7 +249,8 @@ class Context:
         self.only_datasets = (
             None if only_datasets is None else tuple(dict.fromkeys(str(d) for d in only_datasets))
         )
-        self.report_dir = self.out / f"{protocol}-{scale}"
+        suffix = f"-refine{refine_slots}" if refine_slots else ""
+        self.report_dir = self.out / f"{protocol}-{scale}{suffix}"
         self.timers = {"data": 0.0, "training": 0.0, "evaluation": 0.0}
         self.datasets: dict[tuple[str, str], DatasetInfo] = {}
         self.models: dict[str, ModelRecord] = {}
@@ -514,6 +520,8 @@ class Context:
                 "max_scenes": self.settings.eval_scenes,
                 "lpips": self.lpips_available(),
                 "seed": self.seeds["eval"],
+                # Only when on, so that the caches of earlier runs keep their keys.
+                **({"refine_slots": self.refine_slots} if self.refine_slots else {}),
                 **extra,
             }
         )
@@ -540,6 +548,7 @@ class Context:
             max_scenes=self.settings.eval_scenes,
             lpips_weights=self.lpips_weights,
             progress=self.progress,
+            refine_steps=self.refine_slots,
         )
         self.timers["evaluation"] += time.perf_counter() - t
         return res
@@ -592,6 +601,7 @@ class Context:
             "only_datasets": None if self.only_datasets is None else list(self.only_datasets),
             "train_only": None if self.train_only is None else list(self.train_only),
             "backend": self.backend,
+            "refine_slots": self.refine_slots,
         }
         return rep
 

@@ -271,6 +271,7 @@ def evaluate_model(
     max_scenes: int | None = None,
     lpips_weights: str | None = None,
     progress: Callable[[int, int], None] | None = None,
+    refine_steps: int = 0,
 ) -> EvalResult:
     """Score ``model`` on every scene of ``dataset`` (segmentation, image and depth metrics).
 
@@ -286,6 +287,9 @@ def evaluate_model(
         max_scenes: score only the first scenes (None = all).
         lpips_weights: optional LPIPS weight file.
         progress: optional callback ``(done, total)``.
+        refine_steps: test-time slot refinement on the input view's pixels before every
+            prediction, the control's included (``benchmark run --refine-slots``;
+            :func:`benchmark.adapter.predict_scene`); 0 = the encoder's slots.
 
     Returns:
         The aggregated :class:`EvalResult`; ``sample`` holds scene 0's arrays.
@@ -296,11 +300,12 @@ def evaluate_model(
     details: dict[str, str] = {}
     sample = None
     idx = _scene_indices(dataset, max_scenes)
+    refine = {"refine_steps": int(refine_steps)} if refine_steps else {}
     if len(idx) < 2:
         reasons.update(dict.fromkeys(CONTROL_KEYS, CONTROL_REASON))
     for j, i in enumerate(idx):
         truth = adapter.ground_truth(dataset, i)
-        pred = adapter.predict_scene(model, dataset, i, input_view=input_view)
+        pred = adapter.predict_scene(model, dataset, i, input_view=input_view, **refine)
         if pred.labels.shape != truth.instances.shape:
             raise ValueError(
                 f"predict_scene returned labels {tuple(pred.labels.shape)}, expected "
@@ -326,6 +331,7 @@ def evaluate_model(
                 input_view=input_view,
                 slots_scene=idx[(j + 1) % len(idx)],
                 input_view_only=True,
+                **refine,
             )
             _score_control(ctrl.labels, truth, input_view, acc)
         if sample is None:

@@ -158,6 +158,8 @@ def run_table_protocol(
         # that splits generated on different CPUs match; earlier reports used raw bytes.
         "fingerprint": "rounded-1e-6",
     }
+    if ctx.refine_slots:  # only when on: rows scored from the encoder's slots keep their context
+        store_ctx["refine_slots"] = ctx.refine_slots
     store = RowStore(ctx.report_dir / "rows", store_ctx)
     # The row context goes into the report, so that a later run can take its rows
     # (--rows-from) only where they are the numbers it would compute.
@@ -334,6 +336,14 @@ def run_table_protocol(
         ctx.notes.append("LPIPS is null: " + (why or "AlexNet LPIPS weights not found locally."))
     if figures is not None:
         report["figures"] = figures(ctx, rows, state)
+    if ctx.refine_slots:
+        ctx.notes.append(
+            f"Test-time slot refinement (--refine-slots {ctx.refine_slots}): before every "
+            f"prediction the encoder's slots were refined by {ctx.refine_slots} Adam steps "
+            "(every network frozen) to reproduce the input view's own pixels; no other view, "
+            "mask or depth is read. The paper's evaluation uses the encoder's slots alone "
+            "(--refine-slots 0), so these rows are not comparable with its numbers."
+        )
     ctx.notes.extend(ctx.settings.notes)
     return ctx.finish(report)
 

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
+from svorf.refine import refine_slots
 
 __all__ = ["ScenePrediction", "default_eval", "predict_scene"]
 
@@ -57,6 +58,7 @@ def predict_scene(
     input_view: int = 0,
     chunk: int = 4096,
     slots_scene: int | None = None,
+    refine_steps: int = 0,
 ) -> ScenePrediction:
     """Encode one view of a scene and render every view at the dataset's resolution.
 
@@ -71,6 +73,10 @@ def predict_scene(
             (placed in ``scene``'s input-camera frame): a control that shows how much of a
             segmentation does not depend on the scene (a fixed spatial tiling scores the
             same with another scene's slots; a decomposition does not).
+        refine_steps: if > 0, the encoder's slots are refined this many steps on the
+            pixels of the view they were encoded from before rendering
+            (:func:`svorf.refine.refine_slots`; 0 = the encoder's slots, the paper's
+            evaluation).
 
     Returns:
         The :class:`ScenePrediction` of every view (V = ``dataset.n_views``).
@@ -88,6 +94,17 @@ def predict_scene(
         src = sv if slots_scene is None else dataset[slots_scene]
         slots, extra = model.encode_for_render(src.images[input_view : input_view + 1].to(device))
         input_c2w = sv.cam_to_world[input_view : input_view + 1].to(device)
+        if refine_steps > 0:  # on the slots' own view, in its own input-camera frame
+            slots, _ = refine_slots(
+                model,
+                slots,
+                src.rays_o[input_view].reshape(-1, 3),
+                src.rays_d[input_view].reshape(-1, 3),
+                src.images[input_view].permute(1, 2, 0).reshape(-1, 3),
+                steps=refine_steps,
+                input_c2w=src.cam_to_world[input_view : input_view + 1].to(device),
+                seed=int(src.scene),
+            )
         rgb, depth_t, acc, probs = [], [], [], []
         for j in range(v):
             o = sv.rays_o[j].reshape(1, h * w, 3).to(device)
