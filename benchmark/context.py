@@ -520,16 +520,16 @@ class Context:
                 "max_scenes": self.settings.eval_scenes,
                 "lpips": self.lpips_available(),
                 "seed": self.seeds["eval"],
-                # Only when on, so that the caches of earlier runs keep their keys.
-                **({"refine_slots": self.refine_slots} if self.refine_slots else {}),
                 **extra,
             }
         )
         return self.out / "evals" / f"{kind}-{test.fingerprint[:16]}-{ekey}"
 
     def eval_dir(self, rec: ModelRecord, test: DatasetInfo) -> Path:
-        """The evaluation cache folder of ``rec`` on ``test``."""
-        return self._eval_dir(rec.key, test, {})
+        """The evaluation cache folder of ``rec`` on ``test`` (with ``--refine-slots``
+        its own: only then, so that the caches of earlier runs keep their keys)."""
+        extra = {"refine_slots": self.refine_slots} if self.refine_slots else {}
+        return self._eval_dir(rec.key, test, extra)
 
     def evaluation(self, rec: ModelRecord, test: DatasetInfo) -> EvalResult:
         """Score ``rec`` on ``test`` (cached on disk; timed under ``evaluation``)."""
@@ -581,7 +581,7 @@ class Context:
 
     def sample(self, rec: ModelRecord, test: DatasetInfo) -> dict[str, np.ndarray] | None:
         """Arrays of the first test scene of an evaluation (for the qualitative figure)."""
-        p = self._eval_dir(rec.key, test, {}) / "sample.npz"
+        p = self.eval_dir(rec, test) / "sample.npz"
         if not p.is_file():
             return None
         with np.load(p) as z:

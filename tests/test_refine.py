@@ -127,7 +127,10 @@ def test_context_keys_and_folders(tmp_path):
         "segmentation", "smoke", tmp_path, tmp_path / "data", progress=False, refine_slots=20
     )
     test = SimpleNamespace(fingerprint="cd" * 32)
-    assert off._eval_dir("run", test, {}) != on._eval_dir("run", test, {})
+    rec = SimpleNamespace(key="run")
+    assert off.eval_dir(rec, test) != on.eval_dir(rec, test)
+    # The chance baselines do not depend on the model's inference: one cache entry.
+    assert off._eval_dir("baselines", test, {}) == on._eval_dir("baselines", test, {})
     assert on.report_dir.name == "segmentation-smoke-refine20"
     assert off.report_dir.name == "segmentation-smoke"
     assert on.base_report()["scale_settings"]["refine_slots"] == 20
