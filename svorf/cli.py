@@ -6,7 +6,7 @@ Usage::
                 [--steps N] [--resume] [--seed S] [--eval-data DIR] [--image-size N]
                 [--device auto|cpu|cuda] [--max-scenes N] [--threads N] [--no-progress]
     svorf render RUN --data DIR --scene I [--out DIR] [--force] [--allow-preset-mismatch]
-                 [--input-view V] [--chunk N] [--device auto|cpu|cuda]
+                 [--input-view V] [--chunk N] [--refine-steps N] [--device auto|cpu|cuda]
     svorf info --scale paper [--preset clevr567] [--image-size N]
     svorf edit RUN --data DIR --scene I [--move-object K --offset DX DY]
                [--swap-background DONOR] [--out DIR] [--force]   (svorf.edit_cli)
@@ -143,6 +143,14 @@ def _parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--input-view", type=int, default=0, help="view fed to the encoder")
     r.add_argument("--chunk", type=int, default=4096, help="rays per rendering chunk")
+    r.add_argument(
+        "--refine-steps",
+        type=int,
+        default=0,
+        metavar="N",
+        help="test-time slot refinement: N Adam steps on the slots (networks frozen) to "
+        "reproduce the input view's pixels before rendering (default: 0, the encoder's slots)",
+    )
     r.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
 
     from svorf.edit_cli import add_edit_parser
@@ -383,6 +391,8 @@ def _cmd_render(a: argparse.Namespace) -> int:
         raise _UsageError(f"--scene must be >= 0, got {a.scene}")
     if a.chunk < 1:
         raise _UsageError(f"--chunk must be >= 1, got {a.chunk}")
+    if a.refine_steps < 0:
+        raise _UsageError(f"--refine-steps must be >= 0, got {a.refine_steps}")
     meta = _read_manifest(a.data, required=False)
     device = resolve_device(a.device)
     model, info = load_run(a.run, device=device)
@@ -407,7 +417,12 @@ def _cmd_render(a: argparse.Namespace) -> int:
     if not 0 <= a.input_view < ds.n_views:
         raise _UsageError(f"--input-view must be in [0, {ds.n_views}), got {a.input_view}")
     pos = 0
-    pred = predict_scene(model, ds, pos, input_view=a.input_view, chunk=a.chunk)
+    try:
+        pred = predict_scene(
+            model, ds, pos, input_view=a.input_view, chunk=a.chunk, refine_steps=a.refine_steps
+        )
+    except ValueError as err:  # a model whose slots cannot be refined
+        raise _UsageError(str(err)) from None
     paths = save_scene_figures(pred, ds, pos, out)
     print(f"svorf render: wrote {len(paths)} PNGs to {out} (grid: {out / 'grid.png'}){note}")
     return 0

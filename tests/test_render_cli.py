@@ -108,3 +108,13 @@ def test_depth_colours_near_bright_far_dark_in_render_and_preview():
         near, far, miss = luma(rgb[0])
         assert near > 200 and far < 80 and miss == 0
     assert np.abs(a.astype(int) - b.astype(int)).max() <= 1  # one colour scale
+
+
+def test_render_with_slot_refinement(run, tmp_path, capsys):
+    test = _split(tmp_path, "clevr567")
+    out = tmp_path / "refined"
+    assert _render(run, test, "--refine-steps", "2", "--out", str(out)) == 0
+    assert (out / "grid.png").is_file()
+    assert _render(run, test, "--refine-steps", "-1", "--out", str(tmp_path / "x")) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--refine-steps must be >= 0" in err
