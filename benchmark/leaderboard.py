@@ -52,12 +52,19 @@ def _find_reports(root: Path) -> list[Path]:
 
 
 def _budget(report: dict[str, Any]) -> str | None:
-    """A measured row's training budget per model: ``"60 min"``, ``"2000 steps"`` or None."""
+    """A measured row's training budget per model: ``"60 min"``, ``"2000 steps"`` or None,
+    with ``" + refine 50"`` where the evaluation refined the slots (``--refine-slots 50``),
+    so that refined rows never replace the encoder's own."""
     settings = report.get("scale_settings") or {}
     minutes, steps = settings.get("train_minutes"), settings.get("train_steps_override")
     if minutes is not None:
-        return f"{minutes:g} min"
-    return None if steps is None else f"{steps} steps"
+        budget: str | None = f"{minutes:g} min"
+    else:
+        budget = None if steps is None else f"{steps} steps"
+    refine = settings.get("refine_slots") or 0
+    if refine:
+        return f"{budget or 'default'} + refine {refine}"
+    return budget
 
 
 def _rank(entry: dict[str, Any]) -> tuple[bool, bool, str]:

@@ -151,3 +151,22 @@ def test_module_example_runs():
     import svorf.refine as refine_mod
 
     assert doctest.testmod(refine_mod).failed == 0
+
+
+def test_leaderboard_keeps_refined_rows_apart(tmp_path):
+    from test_benchmark import _good_report  # tests/ is on the path (rootdir, no package)
+
+    from benchmark.leaderboard import format_leaderboard, merge_reports
+    from benchmark.report import write_report
+
+    plain = _good_report(created="2025-01-01T00:00:00Z")
+    refined = _good_report(created="2025-02-01T00:00:00Z")
+    for rep in (plain, refined):
+        rep["scale_settings"]["train_steps_override"] = 25000
+    refined["scale_settings"]["refine_slots"] = 50
+    write_report(tmp_path / "a" / "report.json", plain)
+    write_report(tmp_path / "b" / "report.json", refined)
+    board = merge_reports(tmp_path)
+    budgets = sorted(str(e["budget"]) for e in board["entries"] if e["source"] == "measured")
+    assert budgets == ["25000 steps", "25000 steps + refine 50"]
+    assert "smoke seed 0, 25000 steps + refine 50" in format_leaderboard(board)
