@@ -133,6 +133,14 @@ def _parser() -> argparse.ArgumentParser:
         "run's; builds a table over several machines or sittings",
     )
     r.add_argument(
+        "--spread-from",
+        default=None,
+        metavar="REPORT[,REPORT]",
+        help="table protocols: reports of the same protocol, scale and budget at other "
+        "--seed values (report.json or its folder); each of the paper's orderings then "
+        "reports the seed-to-seed spread of its margin",
+    )
+    r.add_argument(
         "--refine-slots",
         type=int,
         default=0,
@@ -230,6 +238,7 @@ def _run(args: argparse.Namespace) -> int:
         ("--address", args.address),
         ("--show-config", True if args.show_config else None),
         ("--rows-from", args.rows_from),
+        ("--spread-from", args.spread_from),
         ("--refine-slots", args.refine_slots or None),
     )
     for flag, value in table_only:
@@ -259,6 +268,9 @@ def _run(args: argparse.Namespace) -> int:
         if args.rows_from is None
         else [p.strip() for p in args.rows_from.split(",") if p.strip()],
         refine_slots=args.refine_slots,
+        spread_from=None
+        if args.spread_from is None
+        else [p.strip() for p in args.spread_from.split(",") if p.strip()],
     )
     if args.show_config:
         from benchmark.protocols.tables import MEASURED_ROWS

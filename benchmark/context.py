@@ -40,6 +40,7 @@ from benchmark.evaluate import BASELINES, EVAL_VERSION, EvalResult, evaluate_bas
 from benchmark.jobs import ModelJob, evaluate_run, read_eval, train_run, write_eval
 from benchmark.log import log
 from benchmark.metrics import lpips_weight_candidates
+from benchmark.orderings import other_seed_rows
 from benchmark.report import new_report, stable_hash, write_report
 from benchmark.row_import import read_reports, recipe_rate_note, step_rate_note
 from benchmark.scales import ScaleSettings, get_scale
@@ -155,6 +156,9 @@ class Context:
         rows_from: earlier ``report.json`` files (or their folders) whose measured rows a
             table protocol takes instead of recomputing them, where model key, test data
             and row context match (``--rows-from``; :mod:`benchmark.row_import`).
+        spread_from: reports of the same protocol, scale and budget at other seeds; the
+            orderings then give the seed-to-seed spread of each margin (``--spread-from``;
+            :func:`benchmark.orderings.other_seed_rows`).
     """
 
     def __init__(
@@ -178,6 +182,7 @@ class Context:
         train_only: list[str] | tuple[str, ...] | None = None,
         rows_from: list[str] | tuple[str, ...] | None = None,
         refine_slots: int = 0,
+        spread_from: list[str] | tuple[str, ...] | None = None,
     ) -> None:
         if backend not in BACKENDS:
             raise ValueError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -251,6 +256,21 @@ class Context:
         )
         suffix = f"-refine{refine_slots}" if refine_slots else ""
         self.report_dir = self.out / f"{protocol}-{scale}{suffix}"
+        spread = read_reports(tuple(spread_from or ()), "--spread-from")
+        #: ``--spread-from`` report paths and their rows by seed (checked now: a report of
+        #: another protocol, scale or budget fails before any work).
+        self.spread_from = [p for p, _ in spread]
+        self.seed_rows = other_seed_rows(
+            spread,
+            protocol=protocol,
+            scale=scale,
+            seed=int(seed),
+            settings={
+                "train_steps_override": self.train_steps,
+                "train_minutes": self.train_minutes,
+                "refine_slots": refine_slots,
+            },
+        )
         self.timers = {"data": 0.0, "training": 0.0, "evaluation": 0.0}
         self.datasets: dict[tuple[str, str], DatasetInfo] = {}
         self.models: dict[str, ModelRecord] = {}

@@ -31,7 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Ordering", "check_orderings", "orderings_summary"]
+__all__ = ["Ordering", "check_orderings", "orderings_summary", "other_seed_rows"]
 
 
 @dataclass(frozen=True)
@@ -175,12 +175,80 @@ def check_orderings(
 
 
 def orderings_summary(section: list[dict[str, Any]]) -> str:
-    """One line: how many of the paper's comparisons the measured rows keep."""
+    """One line: how many of the paper's comparisons the measured rows keep (and how many
+    of those by less than their seed-to-seed spread, where other seeds were given)."""
     judged = [o for o in section if o["measured_holds"] is not None]
     held = sum(bool(o["measured_holds"]) for o in judged)
     missing = len(section) - len(judged)
+    thin = sum(
+        bool(o["measured_holds"])
+        and o.get("seed_spread") is not None
+        and abs(o["margin"]) < o["seed_spread"]
+        for o in judged
+    )
     return (
         f"The measured rows keep {held} of {len(judged)} of the paper's comparisons"
         + (f" ({missing} could not be judged: a value is missing)" if missing else "")
+        + (
+            f"; {thin} of those kept by a margin smaller than its seed-to-seed spread"
+            if thin
+            else ""
+        )
         + "; see 'orderings'."
     )
+
+
+#: The settings two reports must share for their rows to count as two seeds of one table.
+SPREAD_SETTINGS = ("train_steps_override", "train_minutes", "refine_slots")
+
+
+def other_seed_rows(
+    reports: list[tuple[str, dict[str, Any]]],
+    *,
+    protocol: str,
+    scale: str,
+    seed: int,
+    settings: dict[str, Any],
+) -> dict[int, list[dict[str, Any]]]:
+    """The measured and baseline rows of other seeds' reports, by seed (``--spread-from``).
+
+    Args:
+        reports: ``(path, report)`` pairs (:func:`benchmark.row_import.read_reports`).
+        protocol, scale, seed: this run's; each report must be of the same protocol and
+            scale and of another training seed.
+        settings: this run's values of :data:`SPREAD_SETTINGS` (steps or minutes per model,
+            test-time refinement); each report must have the same.
+
+    Raises:
+        ValueError: a report of another protocol, scale or budget, of this run's seed, or
+            two reports of one seed (one line naming the report and the fix).
+    """
+    out: dict[int, list[dict[str, Any]]] = {}
+    for path, rep in reports:
+        where = f"--spread-from {path}"
+        if rep.get("protocol") != protocol or rep.get("scale") != scale:
+            raise ValueError(
+                f"{where}: a {rep.get('protocol')!r} report at scale {rep.get('scale')!r}; "
+                f"give a {protocol!r} report at scale {scale!r}"
+            )
+        other = rep.get("seeds", {}).get("train")
+        if not isinstance(other, int) or other == seed:
+            raise ValueError(
+                f"{where}: trained with seed {other!r}, the seed of this run; give a report "
+                "of another --seed"
+            )
+        if other in out:
+            raise ValueError(f"{where}: a second report of seed {other}; give one per seed")
+        theirs = rep.get("scale_settings") or {}
+        for key in SPREAD_SETTINGS:
+            mine, their = settings.get(key), theirs.get(key)
+            if key == "refine_slots":
+                mine, their = mine or 0, their or 0
+            if mine != their:
+                raise ValueError(
+                    f"{where}: {key} {their!r} where this run has {mine!r}; its rows would "
+                    "compare budgets, not seeds (give a report with the same --steps, "
+                    "--train-minutes and --refine-slots)"
+                )
+        out[other] = [r for r in rep.get("rows", []) if r.get("source") != "paper"]
+    return out

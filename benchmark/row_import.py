@@ -49,8 +49,10 @@ __all__ = [
 ]
 
 
-def read_reports(paths: list[str] | tuple[str, ...]) -> list[tuple[str, dict[str, Any]]]:
-    """``(path, report)`` of each ``--rows-from`` file (a folder means its report.json).
+def read_reports(
+    paths: list[str] | tuple[str, ...], flag: str = "--rows-from"
+) -> list[tuple[str, dict[str, Any]]]:
+    """``(path, report)`` of each file given to ``flag`` (a folder means its report.json).
 
     Raises:
         ValueError: a file that is missing, not JSON or not a benchmark report (one line).
@@ -64,14 +66,14 @@ def read_reports(paths: list[str] | tuple[str, ...]) -> list[tuple[str, dict[str
             report = json.loads(p.read_text())
         except FileNotFoundError:
             raise ValueError(
-                f"--rows-from {raw}: no such file (give a report.json or its folder, e.g. "
+                f"{flag} {raw}: no such file (give a report.json or its folder, e.g. "
                 "results/cpu/segmentation-60min)"
             ) from None
         except (OSError, ValueError) as err:
-            raise ValueError(f"--rows-from {raw}: not a readable JSON report ({err})") from None
+            raise ValueError(f"{flag} {raw}: not a readable JSON report ({err})") from None
         if not isinstance(report, dict) or report.get("kind") != REPORT_KIND:
             raise ValueError(
-                f"--rows-from {raw}: not a benchmark report (its 'kind' is not {REPORT_KIND!r})"
+                f"{flag} {raw}: not a benchmark report (its 'kind' is not {REPORT_KIND!r})"
             )
         out.append((str(p), report))
     return out

@@ -291,8 +291,18 @@ def run_table_protocol(
     report["rows"] = rows
     report["verdicts"] = verdicts_for(rows, ctx.settings)
     if orderings:
-        report["orderings"] = check_orderings(rows, orderings)
+        report["orderings"] = check_orderings(rows, orderings, seed_rows=ctx.seed_rows)
         ctx.notes.append(orderings_summary(report["orderings"]))
+        if ctx.seed_rows:
+            ctx.notes.append(
+                f"Seed-to-seed spread (--spread-from): each ordering's seed_spread is the "
+                f"range of its margin over seed {ctx.seeds['train']} (this run) and seed(s) "
+                + ", ".join(str(s) for s in sorted(ctx.seed_rows))
+                + " ("
+                + ", ".join(ctx.spread_from)
+                + "); the measured rows and verdicts are this run's seed alone. A margin "
+                "smaller than its spread is not shown by these seeds."
+            )
     for r in rows:
         psnr = r["metrics"].get("psnr") if r["source"] == "measured" else None
         flat = next(
