@@ -213,6 +213,11 @@ def _device(name: str) -> str:
     return name
 
 
+def _paths(value: str | None) -> list[str] | None:
+    """The paths of a comma-separated ``REPORT[,REPORT]`` option (None when not given)."""
+    return None if value is None else [p.strip() for p in value.split(",") if p.strip()]
+
+
 def _run(args: argparse.Namespace) -> int:
     from benchmark.context import Context
     from benchmark.protocols import MODEL_PROTOCOLS, TABLE_PROTOCOLS, get_protocol
@@ -264,13 +269,9 @@ def _run(args: argparse.Namespace) -> int:
         address=args.address,
         no_train=args.no_train,
         train_only=None if args.train_only is None else args.train_only.split(","),
-        rows_from=None
-        if args.rows_from is None
-        else [p.strip() for p in args.rows_from.split(",") if p.strip()],
+        rows_from=_paths(args.rows_from),
         refine_slots=args.refine_slots,
-        spread_from=None
-        if args.spread_from is None
-        else [p.strip() for p in args.spread_from.split(",") if p.strip()],
+        spread_from=_paths(args.spread_from),
     )
     if args.show_config:
         from benchmark.protocols.tables import MEASURED_ROWS

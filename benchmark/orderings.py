@@ -231,10 +231,12 @@ def other_seed_rows(
                 f"{where}: a {rep.get('protocol')!r} report at scale {rep.get('scale')!r}; "
                 f"give a {protocol!r} report at scale {scale!r}"
             )
-        other = rep.get("seeds", {}).get("train")
-        if not isinstance(other, int) or other == seed:
+        other = (rep.get("seeds") or {}).get("train")
+        if other is None:
+            raise ValueError(f"{where}: the report names no training seed; give a newer report")
+        if other == seed:
             raise ValueError(
-                f"{where}: trained with seed {other!r}, the seed of this run; give a report "
+                f"{where}: trained with seed {other}, the seed of this run; give a report "
                 "of another --seed"
             )
         if other in out:

@@ -124,6 +124,13 @@ def test_a_report_that_is_not_another_seed_of_this_table_is_refused(report, need
     assert needle in str(err.value) and "\n" not in str(err.value)
 
 
+def test_a_report_without_a_training_seed_is_refused():
+    report = _rep()
+    del report["seeds"]
+    with pytest.raises(ValueError, match="names no training seed"):
+        _other(report)
+
+
 def test_two_reports_of_one_seed_are_refused():
     with pytest.raises(ValueError, match="a second report of seed 1"):
         _other(_rep(seed=1), _rep(seed=1))
