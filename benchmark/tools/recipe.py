@@ -3,11 +3,13 @@ segmentation metrics over wall-clock time, and the recipe's levers as config fie
 
 Where it sits: a tool of the benchmark's tools package, on top of ``svorf.train.train``
 (which it calls with ``max_wall_s`` and an ``eval_fn``); it imports only ``svorf`` and
-``scenefmt``. The segmentation metrics are a callable (:func:`make_eval_fn`), by default
-the ARI, FG-ARI and NV-ARI of this module (:func:`segmentation_metrics_basic`, from
-``svorf.ari``, the project's one ARI that the benchmark scores with too; equal to
-``benchmark.metrics.segmentation_metrics`` on those keys: tests/test_recipe.py), which
-the command line (``python -m benchmark.tools.recipe train-eval``) uses too.
+``scenefmt`` (and, for ``diagnose --occlusion``, ``benchmark.tools.occlusion``, which
+ray-casts the scene JSONs with ``generators``). The segmentation metrics are a callable
+(:func:`make_eval_fn`), by default the ARI, FG-ARI and NV-ARI of this module
+(:func:`segmentation_metrics_basic`, from ``svorf.ari``, the project's one ARI that the
+benchmark scores with too; equal to ``benchmark.metrics.segmentation_metrics`` on those
+keys: tests/test_recipe.py), which the command line (``python -m benchmark.tools.recipe
+train-eval``) uses too.
 
 The levers (every one a documented config field that the paper scale leaves off):
 
@@ -237,7 +239,8 @@ def object_failures(pred: Tensor, gt: Tensor, bg_slot: int) -> list[dict[str, An
 
     Returns:
         One dict per object, in id order: ``id``, ``pixels``, ``slot`` (dominant),
-        ``share`` (its fraction of the object's pixels), ``kind`` ("lost", "merged", "own").
+        ``share`` (its fraction of the object's pixels), ``kind`` ("lost", "merged", "own");
+        merged objects also ``merged_with`` (the ids of the others in their slot).
     """
     if pred.shape != gt.shape:
         raise ValueError(f"object_failures: pred {tuple(pred.shape)} != gt {tuple(gt.shape)}")
@@ -257,6 +260,7 @@ def object_failures(pred: Tensor, gt: Tensor, bg_slot: int) -> list[dict[str, An
             r["kind"] = "lost"
         elif fg_slots.count(r["slot"]) > 1:
             r["kind"] = "merged"
+            r["merged_with"] = [q["id"] for q in rows if q["slot"] == r["slot"] and q is not r]
         else:
             r["kind"] = "own"
     return rows
@@ -439,7 +443,11 @@ def summarize_failures(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 @torch.no_grad()
 def failure_breakdown(
-    model: SVORF, ds: MultiViewDataset, n_scenes: int | None = None, input_view: int = 0
+    model: SVORF,
+    ds: MultiViewDataset,
+    n_scenes: int | None = None,
+    input_view: int = 0,
+    occlusion: Callable[[int, int], dict[int, dict[str, Any]]] | None = None,
 ) -> dict[str, Any]:
     """Where the input-view segmentation of held-out scenes goes wrong, per object.
 
@@ -456,7 +464,9 @@ def failure_breakdown(
         :func:`fg_ari_repairs` and :func:`ari_repairs`), ``rim`` (the rim's shape,
         :func:`benchmark.tools.rim.summarize_rim`: an offset or a dilation), ``splits``
         (how split objects lie, :func:`benchmark.tools.splits.summarize_splits`) and
-        ``n_scenes``.
+        ``n_scenes``. With ``occlusion`` (``(scene number, view) -> {id: {"hidden",
+        "occluders", ...}}``, e.g. ``benchmark.tools.occlusion.SplitOcclusion``) also
+        ``occlusion``: ``benchmark.tools.occlusion.summarize_occlusion`` of the objects.
     """
     n = len(ds) if n_scenes is None else min(int(n_scenes), len(ds))
     bg = model.cfg.num_slots - 1
@@ -477,8 +487,12 @@ def failure_breakdown(
         ari_rows.append(ari_repairs(labels, gt, bg))
         rims.append(rim_geometry(labels, gt, bg, image=image, render=rgb))
         splits.extend(split_geometry(labels, gt, bg))
+        occ = occlusion(ds.scene_ids[i], input_view) if occlusion is not None else {}
         for r in object_failures(labels, gt, bg):
             r["err"] = float(err[gt == r["id"]].mean())
+            if occlusion is not None:
+                o = occ.get(r["id"], {"hidden": 0.0, "occluders": []})
+                r["hidden"], r["occluders"] = o["hidden"], o["occluders"]
             rows.append(r)
     out = summarize_failures(rows)
     out["rgb_abs_err"] = {
@@ -497,6 +511,10 @@ def failure_breakdown(
     }  # fmt: skip
     out["rim"] = summarize_rim(rims)
     out["splits"] = summarize_splits(splits)
+    if occlusion is not None:
+        from benchmark.tools.occlusion import summarize_occlusion
+
+        out["occlusion"] = summarize_occlusion(rows)
     out["n_scenes"] = n
     return out
 
@@ -704,6 +722,9 @@ def main(argv: list[str] | None = None) -> int:
                     "soft masks' temperature (comp_temperature), "
                     "repeatable: a probe of where the errors live, written to "
                     "failures-probe.json")  # fmt: skip
+    dg.add_argument("--occlusion", action="store_true",
+                    help="also break the failures down by how much of each object other "
+                    "objects hide in the input view (ray-cast from the scene JSONs)")  # fmt: skip
     dg.add_argument("--weights", choices=WEIGHTS, default="auto",
                     help="auto: the moving average when the run kept one (ema_decay), else "
                     "the optimizer's weights; raw: the optimizer's weights, written to "
@@ -742,7 +763,12 @@ def main(argv: list[str] | None = None) -> int:
             return fail(_PROG, f"diagnose --render-set: {err}")
         test = MultiViewDataset(a.test, image_size=model.cfg.image_size, max_scenes=a.scenes)
         res = {"step": info.step, "weights": info.weights, "render_set": probe}
-        res.update(failure_breakdown(model, test))
+        occlusion = None
+        if a.occlusion:
+            from benchmark.tools.occlusion import SplitOcclusion
+
+            occlusion = SplitOcclusion(a.test, test.image_hw[0])
+        res.update(failure_breakdown(model, test, occlusion=occlusion))
         if a.depth:
             res["depth"] = depth_breakdown(model, test)
         name = "failures-probe.json" if probe else "failures.json"
