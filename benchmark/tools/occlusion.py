@@ -128,8 +128,10 @@ def summarize_occlusion(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "objects": n,
             **{k: frac(lambda r, k=k: r["kind"] == k) for k in ("lost", "merged", "own")},
             "merged_into_occluder": frac(
-                lambda r: r["kind"] == "merged"
-                and bool(set(r.get("merged_with", [])) & set(r["occluders"]))
+                lambda r: (
+                    r["kind"] == "merged"
+                    and bool(set(r.get("merged_with", [])) & set(r["occluders"]))
+                )
             ),
         }
     return out
