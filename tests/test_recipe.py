@@ -277,7 +277,7 @@ def test_plot_subcommand_draws_runs_and_rejects_a_non_run(tmp_path, capsys):
 
 
 def test_object_failures_classifies_lost_merged_and_own():
-    from benchmark.tools.recipe import object_failures, summarize_failures
+    from benchmark.tools.failures import object_failures, summarize_failures
 
     gt = torch.tensor([[0, 1, 1, 2], [0, 3, 3, 4], [0, 0, 5, 5]])
     # slot 3 = background; objects 1 and 2 share slot 0 (merged), 3 is in slot 1 (own),
@@ -304,7 +304,7 @@ def test_object_failures_classifies_lost_merged_and_own():
 def test_fg_ari_repairs_score_each_error_kind_alone():
     from sklearn.metrics import adjusted_rand_score
 
-    from benchmark.tools.recipe import fg_ari_repairs
+    from benchmark.tools.failures import fg_ari_repairs
 
     # slot 3 = background. Object 1: slots 0 and 1 (split); object 2: one pixel in the
     # background (a rim); objects 3 and 4 share slot 2 (merged); object 5 lost.
@@ -331,7 +331,7 @@ def test_fg_ari_repairs_score_each_error_kind_alone():
 def test_ari_repairs_score_bleed_lost_and_the_one_pixel_rim():
     from sklearn.metrics import adjusted_rand_score
 
-    from benchmark.tools.recipe import ari_repairs
+    from benchmark.tools.failures import ari_repairs
 
     # slot 3 = background; object 1 (slot 0) claims a rim pixel beside it and one far away;
     # object 2 is half lost to the background.
@@ -460,7 +460,7 @@ def test_split_geometry_tells_top_and_bottom_from_side_by_side():
 
 
 def test_depth_breakdown_splits_background_at_the_sampled_box(split):
-    from benchmark.tools.recipe import depth_breakdown
+    from benchmark.tools.failures import depth_breakdown
 
     ds = MultiViewDataset(split, image_size=32)
     torch.manual_seed(0)

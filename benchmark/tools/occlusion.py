@@ -8,7 +8,7 @@ visible pixels). A scene's JSON is enough to ray-cast it again without Blender
 (``generators.raycast``): once with every object, once with each object alone. Rays go
 through pixel centres at the resolution asked for (the model's, not the stored one).
 
-``benchmark.tools.recipe.failure_breakdown(..., occlusion=SplitOcclusion(test_dir, res))``
+``benchmark.tools.failures.failure_breakdown(..., occlusion=SplitOcclusion(test_dir, res))``
 adds, per object, its hidden fraction and occluders, and the summary
 :func:`summarize_occlusion`: the lost / merged / own fractions of the objects by how much of
 them is hidden, and how often an occluded object shares its slot with one of its occluders.

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from benchmark.tools.recipe import ari_repairs, fg_ari_repairs
+from benchmark.tools.failures import ari_repairs, fg_ari_repairs
 from scenefmt import atomic_write_json
 from scenefmt.cli_util import OneLineParser, doc_summary, fail
 from svorf.checkpoint import WEIGHTS, CheckpointError, load_run

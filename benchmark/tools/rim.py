@@ -1,7 +1,7 @@
 """The shape of the rim an object slot claims around its object (diagnosis only).
 
 At low resolution a predicted object mask one pixel too wide costs ARI points that FG-ARI
-never sees (``benchmark.tools.recipe.ari_repairs``). Two causes look alike in ARI and
+never sees (``benchmark.tools.failures.ari_repairs``). Two causes look alike in ARI and
 differ here: a convention error (a half-pixel offset between the rays the model renders and
 the pixels the ground truth labels) moves every predicted object the same way, while a
 model that paints its objects too wide grows them on every side. :func:`rim_geometry`
