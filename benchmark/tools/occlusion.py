@@ -57,8 +57,9 @@ def view_occlusion(
     """Per object: its silhouette alone, what of it shows, and who hides the rest.
 
     Args:
-        meshes / ids: the objects' world-space meshes and their instance ids (no ground:
-            the ground hides no object from cameras above it).
+        meshes / ids: the objects' world-space meshes and their instance ids. Only objects
+            occlude: :class:`SplitOcclusion` leaves the ground out (it hides no object from
+            cameras above it; a room's walls, if they ever hid one, would not count).
         K / c2w: the view's intrinsics at ``res`` x ``res`` and camera-to-world matrix.
         res: square image size.
 
