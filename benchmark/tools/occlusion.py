@@ -89,7 +89,7 @@ class SplitOcclusion:
     """``(scene, view) -> view_occlusion`` of a generated split's scenes, at ``res``.
 
     ``scene`` is the ``sc%04d`` number (``MultiViewDataset.scene_ids``); the scene JSON is
-    read and cast on first use.
+    read and cast on each call (one view of each scene is what ``failure_breakdown`` asks for).
     """
 
     def __init__(self, root: str | Path, res: int) -> None:
