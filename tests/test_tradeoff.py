@@ -419,3 +419,21 @@ def test_generator_curve(smoke):
     assert all(r["metrics"]["render_s_per_view"] > 0 for r in rows)
     info = rep["scale_settings"]["tradeoff"]["generator"]
     assert info["resolution"] == 32 and info["reference_samples"] == 64
+
+
+def test_every_render_point_of_the_shipped_recipes_is_a_valid_config():
+    """The cpu recipe clips the floor inside the box: flipping clip_to_box off must turn off
+    what only exists inside it, or the point's config is refused before anything is timed."""
+    from benchmark import adapter
+    from benchmark.protocols.tradeoff.render import render_points
+
+    cpu = adapter.model_config("cpu", "clevr567", "full")
+    assert cpu.clip_to_box and cpu.clip_floor_z is not None  # what makes the flip non-trivial
+    for scale in ("smoke", "cpu", "paper"):
+        cfg = adapter.model_config(scale, "clevr567", "full")
+        for p in render_points(cfg):
+            flipped = cfg.replace(**p.overrides)  # raises on an invalid combination
+            if p.knob == "clip_to_box":
+                assert flipped.clip_to_box is not cfg.clip_to_box
+    flip = next(p for p in render_points(cpu) if p.knob == "clip_to_box")
+    assert flip.setting.startswith("False (") and "clip_floor_z" in flip.setting

@@ -39,6 +39,7 @@ __all__ = [
     "FINE_MIN_WEIGHTS",
     "RenderPoint",
     "RenderScenes",
+    "clip_flip",
     "format_render_table",
     "measure_render",
     "render_curves",
@@ -93,9 +94,7 @@ def render_points(cfg: Any) -> list[RenderPoint]:
     sp = [(max(1, nc // 2), nf // 2)] + ([(nc, 0)] if nf > 0 else []) + [(2 * nc, 2 * nf)]
     for c, f in sp:
         pts.append(RenderPoint("samples_per_ray", f"{c}+{f}", {"n_coarse": c, "n_fine": f}))
-    pts.append(
-        RenderPoint("clip_to_box", str(not cfg.clip_to_box), {"clip_to_box": not cfg.clip_to_box})
-    )
+    pts.append(clip_flip(cfg))
     for v in EARLY_STOPS:
         pts.append(RenderPoint("eval_early_stop", fmt_value(v), {"eval_early_stop": v}))
     if nf > 0:
@@ -105,6 +104,22 @@ def render_points(cfg: Any) -> list[RenderPoint]:
             )
         pts.append(RenderPoint("combined", knobs_text(EVAL_COMBINED), dict(EVAL_COMBINED)))
     return pts
+
+
+def clip_flip(cfg: Any) -> RenderPoint:
+    """The ``clip_to_box`` point: the shipped setting flipped. Turning the box off also turns
+    off what only exists inside it (``box_z``, ``clip_floor_z``, ``clip_floor_front``), so
+    that the point is a valid config; its setting names them."""
+    if not cfg.clip_to_box:
+        return RenderPoint("clip_to_box", "True", {"clip_to_box": True})
+    inside = {
+        "box_z": None,
+        "clip_floor_z": None,
+        "clip_floor_front": False,
+    }
+    dropped = [k for k, off in inside.items() if getattr(cfg, k) != off]
+    setting = "False" + (f" ({', '.join(dropped)} off with it)" if dropped else "")
+    return RenderPoint("clip_to_box", setting, {"clip_to_box": False, **inside})
 
 
 @dataclass
