@@ -503,16 +503,18 @@ def _train_step(
         )
     done = step + 1
     if run.dctx is not None:
-        opt.zero_grad(set_to_none=True)
         loss.backward()
         loss, parts = _average_step(params, loss, parts, run.dctx.world_size)
     _guard_loss(run, done, loss, parts)
     if run.dctx is None:
-        opt.zero_grad(set_to_none=True)
         loss.backward()
     gnorm = grad_norm(model.parameters())
     _guard_grad(run, done, loss, gnorm)
     opt.step()
+    # Gradients never outlive their step: the next forward, where activations peak, and
+    # the logging, checkpoint and evaluation in between run without them (one copy of
+    # the parameters less in memory; the same numbers, as backward starts from None).
+    opt.zero_grad(set_to_none=True)
     if run.average is not None:
         run.average.update(done)
     run.last_loss = float(loss.detach())

@@ -115,6 +115,27 @@ def test_smoke_training_lowers_loss_and_writes_a_run(split, tmp_path):
     assert not any(math.isnan(v) for v in metrics.values())
 
 
+def test_gradients_do_not_outlive_their_step(split, tmp_path, monkeypatch):
+    # The forward, where activations peak, and the evaluation between steps run without
+    # the previous step's gradients (one parameter-sized copy less at the memory peak).
+    held = []
+    forward = SVORF.forward
+
+    def spy(self, *a, **k):
+        if self.training:
+            held.append(sum(p.grad is not None for p in self.parameters()))
+        return forward(self, *a, **k)
+
+    def eval_fn(model, ds):
+        held.append(sum(p.grad is not None for p in model.parameters()))
+        return {}
+
+    monkeypatch.setattr(SVORF, "forward", spy)
+    cfg = tcfg(ema_decay=0.9, eval_every=2, eval_scenes=1)
+    train(split, tmp_path / "run", MCFG, cfg, eval_data=split, eval_fn=eval_fn, progress=False)
+    assert len(held) == 6 + 3 and held == [0] * 9
+
+
 @pytest.mark.parametrize("ray_sampling", ["uniform", "error_driven"])
 def test_resume_matches_an_uninterrupted_run(split, tmp_path, ray_sampling):
     # The uninterrupted run also evaluates: evaluation must not disturb the RNG streams.
