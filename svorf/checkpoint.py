@@ -57,8 +57,8 @@ CHECKPOINT_FORMAT = "svorf-checkpoint-1"
 
 #: Fields that ``SVORF`` reads at every render and that no sub-network keeps a copy of, so
 #: a trained model can be rendered with another value (a probe, not a model: the weights
-#: were trained under the checkpoint's value): the scene priors, and the samples per ray
-#: (the quadrature).
+#: were trained under the checkpoint's value): the scene priors, the samples per ray
+#: (the quadrature) and where they are taken (the box and its floor clip).
 RENDER_PROBE_FIELDS = (
     "fg_zmin",
     "fg_box",
@@ -66,6 +66,10 @@ RENDER_PROBE_FIELDS = (
     "n_coarse",
     "n_fine",
     "comp_temperature",
+    "clip_to_box",
+    "box_z",
+    "clip_floor_z",
+    "clip_floor_front",
 )
 
 #: Fields that may differ between a checkpoint and the config that resumes it.

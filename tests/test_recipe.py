@@ -143,6 +143,24 @@ def test_the_render_probe_sets_the_composition_temperature_of_a_trained_model():
         assert not torch.allclose(before, a(imgs, o, d).rgb)
 
 
+def test_the_render_probe_turns_the_sampling_box_off_as_a_model_built_without_it():
+    # The box and its floor clip only decide where a ray's samples lie: a trained model can
+    # render without them (--render-set clip_to_box=false clip_floor_z=null ...).
+    from svorf.checkpoint import render_probe
+
+    a, b = _model(clip_to_box=True, clip_floor_z=0.0), _model(clip_to_box=False)
+    b.load_state_dict(a.state_dict())
+    imgs, o = torch.rand(1, 3, 32, 32), torch.tensor([0.0, -12.0, 6.0]).expand(1, 8, 3)
+    d = torch.nn.functional.normalize(-o + 0.3 * torch.randn(1, 8, 3), dim=-1)
+    with torch.no_grad():
+        before = a(imgs, o, d).rgb
+        render_probe(a, {"clip_to_box": False, "clip_floor_z": None})
+        torch.testing.assert_close(a(imgs, o, d).rgb, b(imgs, o, d).rgb)
+        assert not torch.allclose(before, a(imgs, o, d).rgb)
+    with pytest.raises(ValueError, match="clip_floor_z"):  # the config's own check
+        render_probe(_model(clip_to_box=True, clip_floor_z=0.0), {"clip_to_box": False})
+
+
 def test_nvs_warmup_uses_input_view_rays_first(split, tmp_path, monkeypatch):
     seen = []
     orig = train_mod.RaySampler.sample

@@ -391,7 +391,8 @@ def main(argv: list[str] | None = None) -> int:
                     "inside / outside the sampled box); renders every view, slower")  # fmt: skip
     dg.add_argument("--render-set", action="append", default=[], metavar="FIELD=VALUE",
                     help="render with another value of a scene prior (fg_zmin, fg_box, "
-                    "bg_outside_fg), of the samples per ray (n_coarse, n_fine) or of the "
+                    "bg_outside_fg), of the samples per ray (n_coarse, n_fine) and where they "
+                    "are taken (clip_to_box, box_z, clip_floor_z, clip_floor_front) or of the "
                     "soft masks' temperature (comp_temperature), "
                     "repeatable: a probe of where the errors live, written to "
                     "failures-probe.json")  # fmt: skip
