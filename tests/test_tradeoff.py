@@ -437,3 +437,9 @@ def test_every_render_point_of_the_shipped_recipes_is_a_valid_config():
                 assert flipped.clip_to_box is not cfg.clip_to_box
     flip = next(p for p in render_points(cpu) if p.knob == "clip_to_box")
     assert flip.setting.startswith("False (") and "clip_floor_z" in flip.setting
+    # Where the floor is clipped, the floor in front of the box is a point too.
+    front = [p for p in render_points(cpu) if p.knob == "clip_floor_front"]
+    assert [p.overrides for p in front] == [{"clip_floor_front": not cpu.clip_floor_front}]
+    smoke = adapter.model_config("smoke", "clevr567", "full")
+    assert smoke.clip_floor_z is None
+    assert not [p for p in render_points(smoke) if p.knob == "clip_floor_front"]

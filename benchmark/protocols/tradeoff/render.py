@@ -78,8 +78,9 @@ class RenderPoint:
 
 def render_points(cfg: Any) -> list[RenderPoint]:
     """The shipped default (``cfg``, eval knobs off) and every render-curve point: samples
-    per ray, ``clip_to_box`` flipped, ``eval_early_stop``, ``eval_fine_min_weight`` (with
-    fine samples only) and :data:`EVAL_COMBINED`."""
+    per ray, ``clip_to_box`` flipped, ``clip_floor_front`` flipped (where the floor is
+    clipped), ``eval_early_stop``, ``eval_fine_min_weight`` (with fine samples only) and
+    :data:`EVAL_COMBINED`."""
     nc, nf = int(cfg.n_coarse), int(cfg.n_fine)
     pts = [
         RenderPoint(
@@ -95,6 +96,9 @@ def render_points(cfg: Any) -> list[RenderPoint]:
     for c, f in sp:
         pts.append(RenderPoint("samples_per_ray", f"{c}+{f}", {"n_coarse": c, "n_fine": f}))
     pts.append(clip_flip(cfg))
+    if cfg.clip_to_box and cfg.clip_floor_z is not None:
+        front = not cfg.clip_floor_front
+        pts.append(RenderPoint("clip_floor_front", str(front), {"clip_floor_front": front}))
     for v in EARLY_STOPS:
         pts.append(RenderPoint("eval_early_stop", fmt_value(v), {"eval_early_stop": v}))
     if nf > 0:
@@ -387,7 +391,8 @@ def render_note(
         f"every view with svorf's predict_scene (encode the input view, render_chunked), "
         f"{settings.render_repeats} interleaved repeat(s), time per view = median / views; "
         f"{truth}; rgb/depth/label differences are against the default render. Knobs: "
-        "samples per ray, clip_to_box, eval_early_stop (transmittance threshold), "
+        "samples per ray, clip_to_box, clip_floor_front (where the floor is clipped), "
+        "eval_early_stop (transmittance threshold), "
         "eval_fine_min_weight (fine samples only in coarse bins of at least this weight)."
     )
 
