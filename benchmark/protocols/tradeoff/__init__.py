@@ -38,8 +38,9 @@ not dataset scenes, so no dataset is needed; the report says so. These rows are 
 
 - ``render`` (rows ``"curve": "render"``): evaluation render time per view (svorf's
   ``predict_scene``: encode, ``render_chunked``) over samples per ray, ``clip_to_box`` flipped,
-  ``clip_floor_front`` flipped (where the floor is clipped), ``eval_early_stop`` and ``eval_fine_min_weight`` (the evaluation-only knobs of
-  ``ModelConfig``), on the trained weights when there are some. Scored with
+  ``clip_floor_front`` flipped (where the floor is clipped), ``eval_early_stop`` and
+  ``eval_fine_min_weight`` (the evaluation-only knobs of ``ModelConfig``), on the trained
+  weights when there are some. Scored with
   :mod:`benchmark.evaluate`'s functions against the ground truth of the clevr567 test split
   (PSNR on the novel views, NV-ARI, NV-FG-ARI, FG-ARI) when the split is on disk and the
   weights are trained; otherwise PSNR / NV-ARI are null with the reason and the curve's
