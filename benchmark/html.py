@@ -204,6 +204,10 @@ def _verdicts(report: dict[str, Any]) -> str:
     return "".join(out)
 
 
+def _held(held: bool | None, none: str = "n/a") -> str:
+    return "holds" if held else (none if held is None else "<b>does not hold</b>")
+
+
 def _orderings(report: dict[str, Any]) -> str:
     """The paper's comparisons and whether the measured rows keep them."""
     os_ = report.get("orderings") or []
@@ -213,13 +217,16 @@ def _orderings(report: dict[str, Any]) -> str:
         (
             "<h2>The paper's comparisons</h2><table><tr><th class=l>table</th>"
             "<th class=l>claim</th><th class=l>metric</th><th>A</th><th>B</th><th>margin</th>"
-            "<th>seed spread</th><th class=l>paper</th><th class=l>measured</th></tr>"
+            "<th>seed spread</th><th>mean over seeds</th><th class=l>paper</th>"
+            "<th class=l>measured</th><th class=l>on the mean</th></tr>"
         )
     ]
     for o in os_:
         held = o["measured_holds"]
         cls = "measured" if held else "baseline"
         spread = o.get("seed_spread")
+        mean, mean_holds = o.get("seed_mean"), o.get("seed_mean_holds")
+        n = len(o.get("seed_margins") or {})
         out.append(
             f"<tr class={cls}><td class=l>{_e(table_title(o['table']))}</td>"
             f"<td class=l>{_e(o['claim'])}</td><td class=l>{_e(metric_label(o['metric']))}</td>"
@@ -227,8 +234,9 @@ def _orderings(report: dict[str, Any]) -> str:
             f"<td>{fmt_value(o['b']['measured'], o['metric'])}</td>"
             f"<td>{fmt_value(o['margin'], o['metric'])}</td>"
             f"<td>{fmt_value(spread, o['metric']) if spread is not None else '-'}</td>"
+            f"<td>{fmt_value(mean, o['metric']) + f' ({n})' if mean is not None else '-'}</td>"
             f"<td class=l>{_HOLDS.get(o['paper_holds'], '')}</td>"
-            f"<td class=l>{'holds' if held else ('n/a' if held is None else '<b>does not hold</b>')}</td></tr>"
+            f"<td class=l>{_held(held)}</td><td class=l>{_held(mean_holds, '-')}</td></tr>"
         )
     out.append("</table>")
     return "".join(out)

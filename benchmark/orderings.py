@@ -23,7 +23,9 @@ Values and margins are in the report's stored units (ARI family in percent, so a
 Each entry gives the measured and paper values, whether the paper's own numbers keep the
 claim, whether the measured rows do, the margin, and the seed-to-seed spread where rows of
 more than one seed exist (``seed_spread``; null with a reason when one seed was run), so
-that a margin smaller than the spread reads as "not shown".
+that a margin smaller than the spread reads as "not shown". With other seeds the entry also
+carries each seed's margin (``seed_margins``), their mean (``seed_mean``) and whether the
+claim holds on that mean (``seed_mean_holds``): the figure a two-seed table quotes.
 """
 
 from __future__ import annotations
@@ -91,10 +93,36 @@ def _holds(kind: str, a: float | None, b: float | None, tol: float) -> bool | No
     return a > b if kind == "above" else abs(a - b) <= tol
 
 
+def _seed_stats(
+    kind: str, tol: float, seed: int | None, margin: float | None, others: dict[int, float]
+) -> dict[str, Any]:
+    """Spread, per-seed margins, their mean and whether the claim holds on the mean."""
+    if margin is None or not others:
+        return {
+            "seed_spread": None,
+            "seed_spread_reason": "one seed measured: no seed-to-seed spread",
+            "seed_margins": None,
+            "seed_mean": None,
+            "seed_mean_holds": None,
+        }
+    own = "this run" if seed is None else str(seed)
+    by_seed = {own: margin, **{str(s): m for s, m in sorted(others.items())}}
+    vals = list(by_seed.values())
+    mean = sum(vals) / len(vals)
+    return {
+        "seed_spread": max(vals) - min(vals),
+        "seed_spread_reason": None,
+        "seed_margins": by_seed,
+        "seed_mean": mean,
+        "seed_mean_holds": _holds(kind, mean, 0.0, tol),
+    }
+
+
 def check_orderings(
     rows: list[dict[str, Any]],
     orderings: list[Ordering],
     seed_rows: dict[int, list[dict[str, Any]]] | None = None,
+    seed: int | None = None,
 ) -> list[dict[str, Any]]:
     """The ``orderings`` section of a report.
 
@@ -103,12 +131,15 @@ def check_orderings(
         orderings: the comparisons of the report's tables; one whose row A is not in
             ``rows`` at all (a table or dataset the report leaves out) is skipped.
         seed_rows: optional rows of other seeds' reports of the same protocol, by seed; the
-            spread of ``A - B`` over the seeds is then reported.
+            spread of ``A - B`` over the seeds, each seed's margin and their mean are then
+            reported.
+        seed: this report's training seed (the key of its own margin in ``seed_margins``).
 
     Returns:
         One dict per ordering: table, claim, metric, kind, a / b (model, dataset, measured,
         paper), paper_holds, measured_holds (null when a value is missing), margin (A - B,
-        measured), seed_spread and its reason when null.
+        measured), seed_spread and its reason when null, seed_margins (by seed),
+        seed_mean and seed_mean_holds (null with one seed).
     """
     present = {(r["table"], r["model"], r["dataset"]) for r in rows}
     out = []
@@ -125,8 +156,8 @@ def check_orderings(
             b_name = o.b_model
             b_meas = _value(rows, o.table, o.b_model, o.b_dataset, "measured", o.metric)
             b_paper = _value(rows, o.table, o.b_model, o.b_dataset, "paper", o.metric)
-        margins = []
-        for srows in (seed_rows or {}).values():
+        margins: dict[int, float] = {}
+        for s, srows in (seed_rows or {}).items():
             a_s = _value(srows, o.table, o.a_model, o.a_dataset, "measured", o.metric)
             b_s = (
                 (_best_baseline(srows, o.table, o.b_dataset, o.metric) or (None, None))[1]
@@ -134,13 +165,8 @@ def check_orderings(
                 else _value(srows, o.table, o.b_model, o.b_dataset, "measured", o.metric)
             )
             if a_s is not None and b_s is not None:
-                margins.append(a_s - b_s)
+                margins[s] = a_s - b_s
         margin = None if a_meas is None or b_meas is None else a_meas - b_meas
-        if margin is not None and margins:
-            allm = [margin, *margins]
-            spread, spread_reason = max(allm) - min(allm), None
-        else:
-            spread, spread_reason = None, "one seed measured: no seed-to-seed spread"
         measured_holds = _holds(o.kind, a_meas, b_meas, o.tolerance)
         out.append(
             {
@@ -164,8 +190,7 @@ def check_orderings(
                 "paper_holds": _holds(o.kind, a_paper, b_paper, o.tolerance),
                 "measured_holds": measured_holds,
                 "margin": margin,
-                "seed_spread": spread,
-                "seed_spread_reason": spread_reason,
+                **_seed_stats(o.kind, o.tolerance, seed, margin, margins),
                 "why_null": None
                 if measured_holds is not None
                 else "a measured value is missing (row failed, not trained, left out or not computed)",
@@ -180,6 +205,8 @@ def orderings_summary(section: list[dict[str, Any]]) -> str:
     judged = [o for o in section if o["measured_holds"] is not None]
     held = sum(bool(o["measured_holds"]) for o in judged)
     missing = len(section) - len(judged)
+    on_mean = [o for o in judged if o.get("seed_mean_holds") is not None]
+    n_seeds = max((len(o["seed_margins"]) for o in on_mean), default=0)
     thin = sum(
         bool(o["measured_holds"])
         and o.get("seed_spread") is not None
@@ -192,6 +219,12 @@ def orderings_summary(section: list[dict[str, Any]]) -> str:
         + (
             f"; {thin} of those kept by a margin smaller than its seed-to-seed spread"
             if thin
+            else ""
+        )
+        + (
+            f"; on the mean margin of {n_seeds} seeds "
+            f"{sum(bool(o['seed_mean_holds']) for o in on_mean)} of {len(on_mean)} hold"
+            if on_mean
             else ""
         )
         + "; see 'orderings'."

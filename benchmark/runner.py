@@ -291,7 +291,9 @@ def run_table_protocol(
     report["rows"] = rows
     report["verdicts"] = verdicts_for(rows, ctx.settings)
     if orderings:
-        report["orderings"] = check_orderings(rows, orderings, seed_rows=ctx.seed_rows)
+        report["orderings"] = check_orderings(
+            rows, orderings, seed_rows=ctx.seed_rows, seed=ctx.seeds["train"]
+        )
         ctx.notes.append(orderings_summary(report["orderings"]))
         if ctx.seed_rows:
             ctx.notes.append(
@@ -300,8 +302,9 @@ def run_table_protocol(
                 + ", ".join(str(s) for s in sorted(ctx.seed_rows))
                 + " ("
                 + ", ".join(ctx.spread_from)
-                + "); the measured rows and verdicts are this run's seed alone. A margin "
-                "smaller than its spread is not shown by these seeds."
+                + "); seed_margins gives each seed's margin and seed_mean their mean; the "
+                "measured rows and verdicts are this run's seed alone. A margin smaller than "
+                "its spread is not shown by these seeds."
             )
     for r in rows:
         psnr = r["metrics"].get("psnr") if r["source"] == "measured" else None

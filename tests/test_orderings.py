@@ -52,8 +52,25 @@ def test_seed_spread_from_other_seeds():
         _row("measured", "tab:ablation", "wo", "c", fg_ari=70.0),
     ]
     o = [Ordering("tab:ablation", "full above wo", "fg_ari", "full", "c", "wo", "c")]
-    (res,) = check_orderings(ROWS, o, seed_rows={1: seed1})
+    (res,) = check_orderings(ROWS, o, seed_rows={1: seed1}, seed=0)
     assert res["seed_spread"] == pytest.approx(15.0)  # margins -5 and +10
+    assert res["seed_margins"] == {"0": pytest.approx(-5.0), "1": pytest.approx(10.0)}
+    assert res["seed_mean"] == pytest.approx(2.5) and res["seed_mean_holds"] is True
+    (alone,) = check_orderings(ROWS, o)
+    assert alone["seed_margins"] is None and alone["seed_mean_holds"] is None
+
+
+def test_a_close_claim_is_judged_on_the_mean_margin_with_its_tolerance():
+    seed1 = [
+        _row("measured", "tab:ablation", "full", "c", fg_ari=71.0),
+        _row("measured", "tab:ablation", "wo", "c", fg_ari=70.0),
+    ]
+    o = [Ordering("tab:ablation", "c", "fg_ari", "full", "c", "wo", "c", "close", 4.0)]
+    (res,) = check_orderings(ROWS, o, seed_rows={1: seed1}, seed=0)
+    assert res["measured_holds"] is False  # seed 0 alone: |70 - 75| > 4
+    assert res["seed_mean"] == pytest.approx(-2.0) and res["seed_mean_holds"] is True
+    line = orderings_summary([res])
+    assert "on the mean margin of 2 seeds 1 of 1 hold" in line
 
 
 def test_declared_orderings_name_real_paper_rows():

@@ -61,9 +61,16 @@ def test_orderings_carry_the_spread_of_their_margin_over_the_seeds(tmp_path):
             continue
         assert o0["seed_spread"] == pytest.approx(abs(o0["margin"] - o1["margin"]))
         assert o0["seed_spread_reason"] is None
+        assert o0["seed_margins"] == {
+            "0": pytest.approx(o0["margin"]),
+            "1": pytest.approx(o1["margin"]),
+        }
+        assert o0["seed_mean"] == pytest.approx((o0["margin"] + o1["margin"]) / 2)
     assert any(o["seed_spread"] is not None for o in zero["orderings"])
     note = next(n for n in zero["notes"] if n.startswith("Seed-to-seed spread"))
     assert "seed 0 (this run) and seed(s) 1" in note and "segmentation-smoke" in note
+    html = (tmp_path / "s0" / "segmentation-smoke" / "index.html").read_text()
+    assert "mean over seeds" in html and "on the mean" in html
     # The rows and verdicts stay this seed's own.
     m0 = [r["metrics"] for r in zero["rows"] if r["source"] == "measured"]
     m1 = [r["metrics"] for r in one["rows"] if r["source"] == "measured"]
