@@ -667,6 +667,7 @@ class RaySampler:
         salient_fraction: float | None = None,
         include_input: bool = False,
         pixel_jitter: float = 0.0,
+        stride: int = 1,
     ) -> RayBatch:
         """Build the batch for the given scene positions (CPU tensors).
 
@@ -677,7 +678,10 @@ class RaySampler:
         ``pixel_jitter`` > 0 moves each ray off its pixel centre by a uniform draw from a
         square of that side (pixels; ``TrainConfig.pixel_jitter``), the target still the
         pixel's colour; the offsets are drawn after the pixels, which stay those drawn
-        without it, and 0 draws nothing (the batches of earlier versions).
+        without it, and 0 draws nothing (the batches of earlier versions). ``stride`` > 1
+        (``TrainConfig.coarse_to_fine``) draws the rays on the views area-averaged by that
+        factor: each ray through the centre of its ``stride`` x ``stride`` block, its target
+        the block's mean colour, ``target_pixel`` the block's top-left pixel.
         """
         draw = self._fn
         if salient_fraction is not None:
@@ -691,6 +695,11 @@ class RaySampler:
         scenes = torch.as_tensor(scenes, dtype=torch.long).reshape(-1)
         v_all, (h, w) = ds.n_views, ds.image_hw
         r = self.rays_per_scene
+        if stride > 1 and (h % stride or w % stride or self.error_map is not None or pixel_jitter):
+            raise ValueError(
+                f"stride {stride} needs views whose sides are multiples of it (these are "
+                f"{h}x{w}), no error map and no pixel_jitter"
+            )
         inputs = torch.randint(0, v_all, (len(scenes),), generator=generator)
         out = {
             k: []
@@ -709,17 +718,21 @@ class RaySampler:
                 views = torch.tensor([v for v in range(v_all) if v != iv or include_input])
             else:
                 views = torch.tensor([iv])
-            if self.error_map is not None:
-                flat = self.error_map.draw(s, views, r, generator)
-            else:
-                flat = draw(ds._rgb[s][views], r, generator)
-            vsel = views[flat // (h * w)]
-            pix = flat % (h * w)
             out["images"].append(ds.images(s, [iv])[0])
-            rays_o, rays_d = ds.rays(s, vsel, pix)
+            if stride > 1:
+                rays_o, rays_d, vsel, pix, rgb = self._blocks(s, views, draw, stride, generator)
+            else:
+                if self.error_map is not None:
+                    flat = self.error_map.draw(s, views, r, generator)
+                else:
+                    flat = draw(ds._rgb[s][views], r, generator)
+                vsel = views[flat // (h * w)]
+                pix = flat % (h * w)
+                rays_o, rays_d = ds.rays(s, vsel, pix)
+                rgb = ds._rgb[s].reshape(v_all, h * w, 3)[vsel, pix].float() / 255.0
             out["rays_o"].append(rays_o)
             out["rays_d"].append(rays_d)
-            out["target_rgb"].append(ds._rgb[s].reshape(v_all, h * w, 3)[vsel, pix].float() / 255.0)
+            out["target_rgb"].append(rgb)
             out["target_view"].append(vsel)
             out["target_pixel"].append(pix)
             out["input_c2w"].append(ds._c2w[s][iv].float())
@@ -737,3 +750,20 @@ class RaySampler:
             size = (self.input_size, self.input_size)
             batch["images"] = F.interpolate(batch["images"], size=size, mode="area")
         return RayBatch(scenes=scenes, input_view=inputs, **batch)
+
+    def _blocks(
+        self, s: int, views: Tensor, draw: RaySamplingFn, stride: int, generator: torch.Generator
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Rays of scene position ``s`` at ``1/stride`` the resolution (:meth:`sample`):
+        ``(rays_o, rays_d, view, top-left pixel, target colour)``, one row per ray."""
+        ds = self.dataset
+        (h, w), k = ds.image_hw, stride
+        hc, wc = h // k, w // k
+        x = ds._rgb[s][views].permute(0, 3, 1, 2).float()  # [Vt, 3, H, W], 0-255
+        mean = F.avg_pool2d(x, k).permute(0, 2, 3, 1)  # [Vt, hc, wc, 3]
+        flat = draw(mean.round().to(torch.uint8), self.rays_per_scene, generator)
+        vi, cell = flat // (hc * wc), flat % (hc * wc)
+        pix = (cell // wc) * k * w + (cell % wc) * k
+        centre = torch.full((len(flat), 2), (k - 1) / 2.0, dtype=torch.float64)
+        rays_o, rays_d = ds.rays(s, views[vi], pix, centre)
+        return rays_o, rays_d, views[vi], pix, mean.reshape(-1, 3)[flat] / 255.0

@@ -484,7 +484,8 @@ def _train_step(
     smp = run.sampler_warm if step < cfg.nvs_warmup else run.sampler
     share, with_input = cfg.salient_share(progress), cfg.input_view_targeted(progress)
     scenes = smp.sample_scenes(cfg.batch_scenes, run.gen)
-    batch = smp.sample(scenes, run.gen, share, with_input, cfg.pixel_jitter)
+    stride = cfg.ray_stride(progress)
+    batch = smp.sample(scenes, run.gen, share, with_input, cfg.pixel_jitter, stride)
     if run.dctx is not None:
         batch = _batch_rows(batch, run.lo, run.hi)
     batch = batch.to(run.device)

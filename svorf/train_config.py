@@ -26,7 +26,12 @@ import torch
 from scenefmt.cli_util import choose
 from svorf import registry
 from svorf.config import ModelConfig, model_config, ramp
-from svorf.ray_sampling import OBJECT_HEAVY_FRACTION, RAY_SAMPLING, SALIENT_RAY_SAMPLING
+from svorf.ray_sampling import (
+    OBJECT_HEAVY_FRACTION,
+    RAY_SAMPLING,
+    SALIENT_RAY_SAMPLING,
+    STATEFUL_RAY_SAMPLING,
+)
 from svorf.registry import PRESETS, PresetSpec, Recipe, recipe_for
 
 __all__ = [
@@ -109,6 +114,14 @@ class TrainConfig:
     between two pixel centres an edge is supervised rather than left to the fields'
     interpolation. Evaluation and rendering keep the centres. A lever
     (docs/notes/cpu_recipe.md)."""
+    coarse_to_fine: tuple[int, float] | None = None
+    """``(stride, until)``: uORF's coarse-to-fine. Before progress ``until`` (as for
+    ``lr_decay``) every training ray goes through the centre of a ``stride`` x ``stride``
+    block of its view and its target is the block's mean colour, as a camera of
+    ``1/stride`` the resolution sees it (the ray strategy draws on those area-averaged
+    views); from ``until`` on, pixels at full resolution. Early steps fit a blurred scene,
+    layout before edges. The views' sides must be multiples of ``stride``. None = full
+    resolution throughout (the paper). A lever (docs/notes/cpu_recipe.md)."""
     nvs_warmup: int = 0
     """Input-view reconstruction warm-up (cpu recipe, docs/notes/cpu_recipe.md): for the first
     this many steps the target rays come from the input view itself, afterwards from the
@@ -183,6 +196,22 @@ class TrainConfig:
                     "TrainConfig.input_view_from must be None or a fraction of the run in "
                     f"[0, 1], got {self.input_view_from}"
                 )
+        if self.coarse_to_fine is not None:
+            c2f = tuple(self.coarse_to_fine)
+            if len(c2f) != 2 or int(c2f[0]) < 2 or not 0.0 <= float(c2f[1]) <= 1.0:
+                raise ValueError(
+                    "TrainConfig.coarse_to_fine must be None or (stride, until) with stride "
+                    f">= 2 pixels and until a fraction of the run in [0, 1], got {c2f}"
+                )
+            # JSON gives a list; the key and equality want the tuple.
+            object.__setattr__(self, "coarse_to_fine", (int(c2f[0]), float(c2f[1])))
+            if self.pixel_jitter or self.ray_sampling in STATEFUL_RAY_SAMPLING:
+                raise ValueError(
+                    "TrainConfig.coarse_to_fine draws block centres; it does not combine with "
+                    f"pixel_jitter={self.pixel_jitter} or ray_sampling={self.ray_sampling!r} "
+                    "(per-pixel error maps): set pixel_jitter=0 and another ray_sampling, or "
+                    "coarse_to_fine=None"
+                )
         if self.ray_sampling not in RAY_SAMPLING:
             raise ValueError(
                 f"TrainConfig.ray_sampling must be one of {sorted(RAY_SAMPLING)}, "
@@ -205,8 +234,8 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
-        ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter`` and
-        ``ema_decay`` only when set, so that the keys of earlier runs stay valid."""
+        ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter``,
+        ``coarse_to_fine`` and ``ema_decay`` only when set, so that the keys of earlier runs stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         if d["salient_fade"] is None:
@@ -221,6 +250,10 @@ class TrainConfig:
             del d["input_view_from"]
         if not d["pixel_jitter"]:
             del d["pixel_jitter"]
+        if d["coarse_to_fine"] is None:
+            del d["coarse_to_fine"]
+        else:
+            d["coarse_to_fine"] = list(d["coarse_to_fine"])
         return d
 
     @classmethod
@@ -247,6 +280,12 @@ class TrainConfig:
         """Whether the input view is among the target views at ``progress``
         (``input_view_from``)."""
         return self.input_view_from is not None and progress >= self.input_view_from
+
+    def ray_stride(self, progress: float) -> int:
+        """The block side of the training rays at ``progress`` (``coarse_to_fine``; 1 =
+        full-resolution pixels)."""
+        c2f = self.coarse_to_fine
+        return c2f[0] if c2f is not None and progress < c2f[1] else 1
 
     def replace(self, **changes: Any) -> TrainConfig:
         """A copy with ``changes`` (field values) applied and checked."""

@@ -176,6 +176,44 @@ def test_sampler_pixel_jitter_moves_rays_inside_their_pixels(ds):
             assert float(off.abs().mean()) > side / 8
 
 
+def test_sampler_stride_draws_block_centres_and_block_means(ds):
+    """TrainConfig.coarse_to_fine's sampler: each ray through the centre of its stride x
+    stride block (the point between the block's pixel centres), its target the block's
+    mean colour; stride 1 is the sampler without it."""
+    sampler = RaySampler(ds, rays_per_scene=64, nvs=True, ray_sampling="object_heavy")
+    plain = sampler.sample([0, 1], torch.Generator().manual_seed(5))
+    one = sampler.sample([0, 1], torch.Generator().manual_seed(5), stride=1)
+    for k in plain.__dataclass_fields__:
+        assert torch.equal(getattr(one, k), getattr(plain, k)), k
+    for k in (2, 4):
+        b = sampler.sample([0, 1], torch.Generator().manual_seed(5), stride=k)
+        assert b.target_rgb.shape == (2, 64, 3)
+        assert bool((b.target_view != b.input_view[:, None]).all())
+        for i, s in enumerate(b.scenes.tolist()):
+            sv = ds[s]
+            vv, pix = b.target_view[i], b.target_pixel[i]
+            y0, x0 = pix // 32, pix % 32
+            assert bool((y0 % k == 0).all() and (x0 % k == 0).all())
+            blocks = torch.stack(
+                [sv.images[v, :, y : y + k, x : x + k].mean((-1, -2))
+                 for v, y, x in zip(vv.tolist(), y0.tolist(), x0.tolist())]
+            )  # fmt: skip
+            torch.testing.assert_close(b.target_rgb[i], blocks, atol=1e-6, rtol=0)
+            # The ray through the block's centre: half-way between its two middle pixels'
+            # rays for an even side (the image plane is flat, so the mid-point direction).
+            rot = sv.cam_to_world[vv, :3, :3].double()
+            d_cam = torch.einsum("rji,rj->ri", rot, b.rays_d[i].double())
+            uvw = torch.einsum("rij,rj->ri", sv.K[vv].double(), d_cam)
+            torch.testing.assert_close(
+                uvw[:, 0] / uvw[:, 2], x0.double() + k / 2, atol=1e-4, rtol=0
+            )
+            torch.testing.assert_close(
+                uvw[:, 1] / uvw[:, 2], y0.double() + k / 2, atol=1e-4, rtol=0
+            )
+    with pytest.raises(ValueError, match="multiples"):
+        sampler.sample([0], torch.Generator(), stride=3)
+
+
 def test_sampler_input_size_shrinks_only_the_encoder_input(ds):
     """TrainConfig.target_size's sampler: the input view is area-averaged down to
     input_size (what the dataset's own resize would give), the target rays and colours stay

@@ -165,7 +165,9 @@ def test_nvs_warmup_uses_input_view_rays_first(split, tmp_path, monkeypatch):
     seen = []
     orig = train_mod.RaySampler.sample
 
-    def spy(self, scenes, gen, salient_fraction=None, include_input=False, pixel_jitter=0.0):
+    def spy(
+        self, scenes, gen, salient_fraction=None, include_input=False, pixel_jitter=0.0, stride=1
+    ):
         batch = orig(self, scenes, gen, salient_fraction, include_input, pixel_jitter)
         seen.append(bool((batch.target_view == batch.input_view[:, None]).all()))
         return batch

@@ -88,16 +88,21 @@ def test_config_key_names_what_is_learned():
     assert set(changed) == set(BOOKKEEPING_FIELDS)
     assert config_key(m, t.replace(**changed)) == key
     every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
-    # target_size, salient_fade, input_view_from, pixel_jitter and ema_decay are written only
-    # when set, so the keys of earlier runs stay valid (the cpu recipe sets ema_decay)
-    unset = {"target_size", "salient_fade", "input_view_from", "pixel_jitter"}
+    # target_size, salient_fade, input_view_from, pixel_jitter, coarse_to_fine and ema_decay
+    # are written only when set, so the keys of earlier runs stay valid (the cpu recipe sets
+    # ema_decay)
+    unset = {"target_size", "salient_fade", "input_view_from", "pixel_jitter", "coarse_to_fine"}
     assert t.ema_decay == 0.999 and set(learning_fields(t)) == every - unset
     plain = t.replace(ema_decay=0.0)
     assert set(learning_fields(plain)) == every - unset - {"ema_decay"}
     finer = t.replace(
         target_size=128, salient_fade=(0.5, 0.7), input_view_from=0.5, pixel_jitter=1.0
     )
-    assert set(learning_fields(finer)) == every and config_key(m, finer) != key
+    assert set(learning_fields(finer)) == every - {"coarse_to_fine"}
+    assert config_key(m, finer) != key
+    coarse = t.replace(coarse_to_fine=(2, 0.5))
+    assert set(learning_fields(coarse)) == every - unset | {"coarse_to_fine"}
+    assert config_key(m, coarse) != key
     assert config_key(m, plain) != key
     assert config_key(m, t.replace(seed=1)) != key
     assert config_key(m.replace(num_slots=7), t) != key

@@ -303,9 +303,11 @@ def test_salient_fade_ends_the_run_on_uniform_rays(split, tmp_path, monkeypatch)
     seen = []
     real = RaySampler.sample
 
-    def spy(self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0):
+    def spy(
+        self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0, stride=1
+    ):
         seen.append(salient_fraction)
-        return real(self, scenes, generator, salient_fraction, include_input, jitter)
+        return real(self, scenes, generator, salient_fraction, include_input, jitter, stride)
 
     monkeypatch.setattr(RaySampler, "sample", spy)
     train(split, tmp_path / "fade", MCFG, cfg, progress=False)
@@ -328,9 +330,11 @@ def test_input_view_from_adds_the_input_view_to_the_targets_late(split, tmp_path
     seen = []
     real = RaySampler.sample
 
-    def spy(self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0):
+    def spy(
+        self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0, stride=1
+    ):
         seen.append(include_input)
-        return real(self, scenes, generator, salient_fraction, include_input, jitter)
+        return real(self, scenes, generator, salient_fraction, include_input, jitter, stride)
 
     monkeypatch.setattr(RaySampler, "sample", spy)
     train(split, tmp_path / "iv", MCFG, cfg, progress=False)
@@ -351,15 +355,50 @@ def test_pixel_jitter_reaches_the_sampler_and_is_keyed_only_when_on(split, tmp_p
     seen = []
     real = RaySampler.sample
 
-    def spy(self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0):
+    def spy(
+        self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0, stride=1
+    ):
         seen.append(jitter)
-        return real(self, scenes, generator, salient_fraction, include_input, jitter)
+        return real(self, scenes, generator, salient_fraction, include_input, jitter, stride)
 
     monkeypatch.setattr(RaySampler, "sample", spy)
     train(split, tmp_path / "pj", MCFG, cfg, progress=False)
     assert seen == [1.0, 1.0]
     with pytest.raises(ValueError, match="pixel_jitter must be in"):
         TrainConfig(pixel_jitter=1.5)
+
+
+def test_coarse_to_fine_strides_the_early_batches_and_is_keyed_only_when_on(
+    split, tmp_path, monkeypatch
+):
+    """TrainConfig.coarse_to_fine: blocks of its stride before ``until``, pixels after;
+    left out of the key while None (earlier runs keep their keys), round-trips through
+    JSON, and refuses what it cannot honour."""
+    from svorf.data import RaySampler
+
+    assert "coarse_to_fine" not in tcfg().to_dict()
+    cfg = tcfg(steps=4, coarse_to_fine=[2, 0.5])
+    assert cfg.coarse_to_fine == (2, 0.5) and cfg.to_dict()["coarse_to_fine"] == [2, 0.5]
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    assert [cfg.ray_stride(p) for p in (0.0, 0.49, 0.5, 1.0)] == [2, 2, 1, 1]
+    assert tcfg().ray_stride(0.0) == 1
+    seen = []
+    real = RaySampler.sample
+
+    def spy(
+        self, scenes, generator, salient_fraction=None, include_input=False, jitter=0.0, stride=1
+    ):
+        seen.append(stride)
+        return real(self, scenes, generator, salient_fraction, include_input, jitter, stride)
+
+    monkeypatch.setattr(RaySampler, "sample", spy)
+    train(split, tmp_path / "c2f", MCFG, cfg, progress=False)
+    assert seen == [2, 2, 1, 1]  # progress 0, 1/4, 1/2, 3/4
+    for bad in ((1, 0.5), (2, 1.5), (2,), (2, 0.5, 1)):
+        with pytest.raises(ValueError, match="coarse_to_fine must be"):
+            TrainConfig(coarse_to_fine=bad)
+    with pytest.raises(ValueError, match="does not combine"):
+        TrainConfig(coarse_to_fine=(2, 0.5), pixel_jitter=0.5)
 
 
 def test_cli_train_refuses_data_coarser_than_target_size(split, tmp_path, capsys, monkeypatch):
