@@ -10,6 +10,8 @@ Where this sits: beside the benchmark, on top of the libraries. The tools import
 - :mod:`.recipe`: the cpu recipe's time-budgeted training with held-out evaluation,
   per-object failure breakdown and curves (``python -m benchmark.tools.recipe
   train-eval|diagnose|plot``).
+- :mod:`.compare`: two arms of a recipe change side by side at each seed, from written
+  reports (``python -m benchmark.tools.compare --with DIR... --without DIR...``).
 - :mod:`.bench_baseline`: ``generate`` against a straightforward bpy script.
 - :mod:`.bench_quality`: render error and time of the generator's render settings.
 - :mod:`.bench_overhead`: bare Cycles time of a generated split's views.
