@@ -96,6 +96,10 @@ def test_diagnose_must_match_its_seeds_model(tmp_path, capsys):
     assert "diagnosed another model" in capsys.readouterr().err
     assert main(["--with", str(w), "--without", str(o), "--diagnose-without", str(good)]) == 2
     assert "expected SEED=FILE" in capsys.readouterr().err
+    (tmp_path / "broken.json").write_text("{")
+    assert main(["--with", str(w), "--without", str(o), "--diagnose-without",
+                 f"0={tmp_path / 'broken.json'}"]) == 2  # fmt: skip
+    assert "not JSON" in capsys.readouterr().err
 
 
 def test_one_line_errors_for_bad_folders(tmp_path, capsys):

@@ -137,21 +137,25 @@ def read_arm(folders: list[str | Path], dataset: str | None = None,
 
 def add_diagnose(seeds: dict[int, dict[str, Any]], seed: int, path: str | Path) -> None:
     """Adds a ``diagnose`` JSON's failure breakdown to ``seeds[seed]``; refused where its
-    FG-ARI is not the seed's segmentation FG-ARI (then it scored another model)."""
+    FG-ARI is not the FG-ARI the seed's reports give (then it scored another model)."""
     path = Path(path)
     if seed not in seeds:
         raise CompareError(f"{path}: seed {seed} has no report in this arm")
     if not path.is_file():
         raise CompareError(f"{path}: no such file; pass what `python -m benchmark.tools.recipe "
                            "diagnose` wrote")  # fmt: skip
-    d = json.loads(path.read_text())
-    if "lost" not in d:
+    try:
+        d = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise CompareError(f"{path}: not JSON ({err.msg} at line {err.lineno})") from err
+    if not isinstance(d, dict) or "lost" not in d:
         raise CompareError(f"{path}: not a failure breakdown (no 'lost')")
     own = (d.get("fg_ari_repairs") or {}).get("fg_ari")
-    seg = seeds[seed]["metrics"].get("segmentation.fg_ari")
-    if own is not None and seg is not None and abs(100 * own - seg) > 0.05:
-        raise CompareError(f"{path}: FG-ARI {100 * own:.1f} but seed {seed}'s segmentation report "
-                           f"says {seg:.1f}: it diagnosed another model")  # fmt: skip
+    scored = {k: v for k, v in seeds[seed]["metrics"].items() if k.endswith(".fg_ari")}
+    for name, seg in scored.items():
+        if own is not None and seg is not None and abs(100 * own - seg) > 0.05:
+            raise CompareError(f"{path}: FG-ARI {100 * own:.1f} but seed {seed}'s {name} is "
+                               f"{seg:.1f}: it diagnosed another model")  # fmt: skip
     seeds[seed]["metrics"].update(_diagnose_metrics(d))
 
 
