@@ -240,6 +240,16 @@ def test_no_module_over_the_line_limit():
     assert _project().long == [], "\n".join(_project().long)
 
 
+def test_every_tool_has_a_row_in_the_layout_doc():
+    """docs/layout.md's benchmark.tools table names every tool module (a new tool is found)."""
+    section = (ROOT / "docs" / "layout.md").read_text().split("## benchmark.tools", 1)[1]
+    tools = sorted((ROOT / "benchmark" / "tools").glob("*.py"))
+    missing = [
+        p.name for p in tools if p.name != "__init__.py" and f"| `{p.name}` |" not in section
+    ]
+    assert len(tools) > 5 and missing == [], f"add a row to docs/layout.md for: {missing}"
+
+
 def _write(root: Path, files: dict[str, str]) -> None:
     for rel, text in files.items():
         p = root / rel
