@@ -3,12 +3,12 @@
 Where this sits: ``benchmark leaderboard DIR`` walks ``DIR`` for ``report.json``
 files (every protocol writes one), validates each against the schema, keeps the
 newest row per (protocol, scale, table, model, dataset, source, training seed of a
-measured row), preferring a measured row whose model has the configs the recipe gives
-today (``current_recipe``) over a lever's or an older recipe's, and writes
-``DIR/leaderboard.json``. The printed table puts every measured and baseline
-row under the paper's rows of the same table, formatted by :mod:`benchmark.display`
-and at most :data:`WIDTH` columns wide. ``leaderboard.json`` keeps the reports'
-stored values (ARI family in percent, like ``report.json``).
+measured row, data seed of a baseline's test scenes), preferring a measured row whose
+model has the configs the recipe gives today (``current_recipe``) over a lever's or an
+older recipe's, and writes ``DIR/leaderboard.json``. The printed table puts every
+measured and baseline row under the paper's rows of the same table, formatted by
+:mod:`benchmark.display` and at most :data:`WIDTH` columns wide. ``leaderboard.json``
+keeps the reports' stored values (ARI family in percent, like ``report.json``).
 """
 
 from __future__ import annotations
@@ -150,6 +150,9 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
             seed = report.get("seeds", {}).get("train") if src == "measured" else None
             # ... and so are rows of different training budgets (60 minutes, 2,000 steps).
             budget = _budget(report) if src == "measured" else None
+            # A chance baseline is computed on the test scenes, so baselines on the scenes of
+            # different data seeds are different entries too (K image blocks: 59.8 / 55.0).
+            data_seed = report.get("seeds", {}).get("data") if src == "baseline" else None
             key = (
                 None if src == "paper" else report["protocol"],
                 scale,
@@ -159,6 +162,7 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
                 src,
                 seed,
                 budget,
+                data_seed,
             )
             entry = dict(row)
             entry.update(
@@ -172,6 +176,8 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
                 seed=seed,
                 budget=budget,
             )
+            if data_seed is not None:
+                entry["data_seed"] = data_seed
             if src == "measured":
                 entry["current_recipe"] = current_recipe(report, row)
             # The newest row wins, except that a row without numbers (not trained, failed,
@@ -190,7 +196,7 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
             e["dataset"],
             src_order[e["source"]],
             e.get("scale") or "",
-            e["seed"] if e["seed"] is not None else -1,
+            e["seed"] if e["seed"] is not None else e.get("data_seed", -1),
             e.get("budget") or "",
             e["position"],
         ),
@@ -227,11 +233,13 @@ def _wrap(text: str, width: int, indent: str = "") -> list[str]:
 def _source(r: dict[str, Any]) -> str:
     """Who the row's numbers come from: ``paper``, ``cpu seed 0, 60 min`` (measured at a
     scale, training seed and budget per model; ``, earlier recipe`` where the model's
-    configs are not the ones the recipe gives today) or ``smoke baseline``."""
+    configs are not the ones the recipe gives today) or ``cpu baseline, data 1`` (a chance
+    baseline, on the test scenes of data seed 1)."""
     if r["source"] == "paper":
         return "paper"
     if r["source"] == "baseline":
-        return f"{r['scale']} baseline"
+        scenes = f", data {r['data_seed']}" if r.get("data_seed") is not None else ""
+        return f"{r['scale']} baseline{scenes}"
     label = f"{r['scale']} seed {r['seed']}" if r.get("seed") is not None else str(r["scale"])
     label = f"{label}, {r['budget']}" if r.get("budget") else label
     return f"{label}, earlier recipe" if r.get("current_recipe") is False else label
@@ -352,8 +360,9 @@ def format_leaderboard(board: dict[str, Any], width: int = WIDTH) -> str:
             *_wrap(
                 "source: 'paper' = the paper's number; '<scale> seed N' = measured here at "
                 "that scale with training seed N ('earlier recipe': a model whose configs "
-                "are not the ones `benchmark run` gives today); '<scale> baseline' = a "
-                "chance baseline computed here. An empty cell: the row has no such metric.",
+                "are not the ones `benchmark run` gives today); '<scale> baseline, data N' = a "
+                "chance baseline computed here on the test scenes of data seed N. An empty "
+                "cell: the row has no such metric.",
                 width,
             ),
             "",

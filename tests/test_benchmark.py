@@ -293,6 +293,30 @@ def test_leaderboard_keeps_rows_of_different_budgets_apart(tmp_path):
     assert "smoke seed 0, 60 min" in format_leaderboard(board)
 
 
+def test_leaderboard_keeps_baselines_on_other_scenes_apart(tmp_path):
+    """A chance baseline is computed on the test scenes: one on the scenes of data seed 1 is
+    another entry than one on seed 0's, not a newer value of it; on the same scenes the
+    newest wins."""
+    reports = {
+        "s0_old": (0, "2025-01-01T00:00:00Z", 10.0),
+        "s0_new": (0, "2025-02-01T00:00:00Z", 20.0),
+        "s1": (1, "2025-03-01T00:00:00Z", 30.0),
+    }
+    for name, (data_seed, created, value) in reports.items():
+        rep = _good_report(created=created)
+        rep["seeds"] = {"data": data_seed, "train": data_seed, "eval": data_seed}
+        next(r for r in rep["rows"] if r["source"] == "baseline")["metrics"]["fg_ari"] = value
+        write_report(tmp_path / name / "report.json", rep)
+    board = merge_reports(tmp_path)
+    chance = [e for e in board["entries"] if e["source"] == "baseline"]
+    assert [(e["data_seed"], e["metrics"]["fg_ari"]) for e in chance] == [(0, 20.0), (1, 30.0)]
+    text = format_leaderboard(board)
+    assert "smoke baseline, data 0" in text and "smoke baseline, data 1" in text
+    # Measured rows are still one per training seed, paper rows one in all.
+    assert len([e for e in board["entries"] if e["source"] == "measured"]) == 2
+    assert len([e for e in board["entries"] if e["source"] == "paper"]) == 5
+
+
 def _recipe_report(created: str, **train_changes) -> dict:
     """A cpu-scale report whose measured row's model has the cpu recipe's configs for
     CLEVR-567, with ``train_changes`` (a lever) applied to its train config."""
