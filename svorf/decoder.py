@@ -54,11 +54,24 @@ class MultiHeadAttention(nn.Module):
 
     Shapes: q [B, Lq, Dq], k [B, Lk, Dk], v [B, Lk, Dv] -> [B, Lq, dim].
     ``key_mask`` [B, Lk] bool, True = attend (optional).
+
+    ``fold_keys=True`` (the decoder's cross-attention: 8 slots against 1,024 feature tokens
+    at the cpu scale) computes the same attention without projecting the keys and values:
+    the key projection is folded into the queries (``q_h . (W_k,h k_t + b_k,h) = (W_k,h^T
+    q_h) . k_t + q_h . b_k,h``) and the value projection is applied after the weighted sum
+    (the weights of a query sum to 1, so ``sum_t a_t (W_v,h v_t + b_v,h) = W_v,h sum_t a_t
+    v_t + b_v,h``). Same parameters and, up to float rounding, the same outputs, logits and
+    gradients as :meth:`forward_reference`; per step it multiplies Lq x Dk per head
+    instead of Lk x dim. Every key must be attended by at least one query row (a fully
+    masked row is NaN in both forms).
     """
 
-    def __init__(self, dim: int, heads: int, q_dim: int, k_dim: int, v_dim: int) -> None:
+    def __init__(
+        self, dim: int, heads: int, q_dim: int, k_dim: int, v_dim: int, fold_keys: bool = False
+    ) -> None:
         super().__init__()
         self.heads = heads
+        self.fold_keys = fold_keys
         self.q = nn.Linear(q_dim, dim)
         self.k = nn.Linear(k_dim, dim)
         self.v = nn.Linear(v_dim, dim)
@@ -77,6 +90,33 @@ class MultiHeadAttention(nn.Module):
     ) -> Tensor | tuple[Tensor, Tensor]:
         """Attention output [B, Lq, dim]; with ``need_weights`` also the attention logits
         [B, H, Lq, Lk] (softmax over the last axis gives the weights used)."""
+        if not self.fold_keys:
+            return self.forward_reference(q, k, v, key_mask, need_weights)
+        B, Lq, _ = q.shape
+        H = self.heads
+        qh = self.q(q).view(B, Lq, H, -1)  # [B, Lq, H, dh]
+        dh = qh.shape[-1]
+        qk = torch.einsum("bihd,hdc->bhic", qh, self.k.weight.view(H, dh, -1))  # [B,H,Lq,Dk]
+        qb = torch.einsum("bihd,hd->bhi", qh, self.k.bias.view(H, dh))  # [B, H, Lq]
+        logits = (qk.reshape(B, H * Lq, -1) @ k.transpose(1, 2)).view(B, H, Lq, -1)
+        logits = (logits + qb[..., None]) / math.sqrt(dh)
+        if key_mask is not None:
+            logits = logits.masked_fill(~key_mask[:, None, None, :], float("-inf"))
+        w = torch.softmax(logits, dim=-1)
+        agg = (w.reshape(B, H * Lq, -1) @ v).view(B, H, Lq, -1)  # [B, H, Lq, Dv]
+        out = torch.einsum("bhic,hdc->bihd", agg, self.v.weight.view(H, dh, -1))
+        out = self.o((out + self.v.bias.view(H, dh)).reshape(B, Lq, -1))
+        return (out, logits) if need_weights else out
+
+    def forward_reference(
+        self,
+        q: Tensor,
+        k: Tensor,
+        v: Tensor,
+        key_mask: Tensor | None = None,
+        need_weights: bool = False,
+    ) -> Tensor | tuple[Tensor, Tensor]:
+        """The textbook form: project queries, keys and values per head, then attend."""
         B, Lq, _ = q.shape
         Lk = k.shape[1]
         H = self.heads
@@ -117,7 +157,7 @@ class DecoderLayer(nn.Module):
             self.norm_sa = nn.LayerNorm(dim)
             self.sa = MultiHeadAttention(dim, heads, dim, dim, dim)
         self.norm_ca = nn.LayerNorm(dim)
-        self.ca = MultiHeadAttention(dim, heads, dim, mem_dim, mem_dim)
+        self.ca = MultiHeadAttention(dim, heads, dim, mem_dim, mem_dim, fold_keys=True)
         self.norm_ff = nn.LayerNorm(dim)
         self.ff = nn.Sequential(nn.Linear(dim, ffn), nn.ReLU(inplace=True), nn.Linear(ffn, dim))
 

@@ -66,7 +66,15 @@ class ImageEncoder(nn.Module):
     Input ``images`` [B, 3, H, W] with values in [0, 1] (H, W multiples of 8); they are
     mapped to [-1, 1] here (with PyTorch-style [0, 1] inputs and default biases the features
     were found to be nearly image-independent, docs/notes/cpu_recipe.md). Output [B, feat_dim, H/2, W/2].
+
+    On CPU the convolutions run on channels-last tensors (:attr:`channels_last_on_cpu`):
+    oneDNN's kernels are faster in that layout (the encoder's forward + backward about 1.2x
+    at the cpu scale), the weights and the math are the same, and the output map is
+    channels-last, so the slot decoder flattens it into tokens without a copy.
     """
+
+    #: Run the convolutions on channels-last tensors on CPU (False: the default layout).
+    channels_last_on_cpu: bool = True
 
     def __init__(
         self,
@@ -122,6 +130,8 @@ class ImageEncoder(nn.Module):
                 f"ImageEncoder: H and W must be multiples of 8, got {tuple(images.shape[-2:])}"
             )
         x = images * 2.0 - 1.0
+        if self.channels_last_on_cpu and x.device.type == "cpu":
+            x = x.contiguous(memory_format=torch.channels_last)
         f1 = self.conv2(self.stem(x))  # [B, w, H/2, W/2]
         f2 = self.conv3(f1)  # [B, 2w, H/4, W/4]
         f3 = self.conv4(f2)  # [B, 4w, H/8, W/8]

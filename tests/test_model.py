@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from svorf.compose import compose_density_weighted, density_weights
 from svorf.config import ModelConfig, model_config
-from svorf.decoder import SlotAttention, SlotTransformerDecoder
+from svorf.decoder import MultiHeadAttention, SlotAttention, SlotTransformerDecoder
 from svorf.edit import move_object, object_transforms_for, swap_background
 from svorf.encoder import ImageEncoder
 from svorf.field import FieldParams, HyperNetwork, SlotConditionedMLP
@@ -102,6 +102,27 @@ def test_encoder_maps_inputs_and_init():
     # image dependence: two images give clearly different features
     rel = (out[0] - out[1]).norm() / out.norm()
     assert rel > 0.05
+
+
+def test_channels_last_encoder_equals_the_default_layout():
+    """On CPU the encoder runs its convolutions channels-last: same weights, the same
+    features and gradients (to float rounding) as PyTorch's default layout, and a
+    channels-last output map (which the decoder flattens into tokens without a copy)."""
+    torch.manual_seed(0)
+    fast = ImageEncoder(8, (1, 1, 1), 16, "group")
+    plain = ImageEncoder(8, (1, 1, 1), 16, "group")
+    plain.load_state_dict(fast.state_dict())
+    plain.channels_last_on_cpu = False
+    x = make_images(2, 32)
+    a, b = fast(x), plain(x)
+    assert a.is_contiguous(memory_format=torch.channels_last)
+    assert b.is_contiguous() and not a.is_contiguous()
+    torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    a.square().sum().backward()
+    b.square().sum().backward()
+    for (name, p), q in zip(fast.named_parameters(), plain.parameters()):
+        assert p.is_contiguous(), name  # the weights keep their layout
+        assert (p.grad - q.grad).norm() <= 1e-4 * q.grad.norm(), name
 
 
 def test_encoder_up_kernel_one_is_a_cheaper_head_of_the_same_shape():
@@ -716,14 +737,48 @@ def test_attention_centres_follow_each_slots_attention():
 def test_attention_weights_equal_the_fused_attention_path():
     """MultiHeadAttention(need_weights=True) (explicit softmax, for the attention centres)
     gives the same output as the fused scaled_dot_product_attention path."""
-    from svorf.decoder import MultiHeadAttention
-
     torch.manual_seed(0)
     mha = MultiHeadAttention(16, 4, 16, 12, 12)
     q, kv = torch.randn(2, 5, 16), torch.randn(2, 7, 12)
     out, logits = mha(q, kv, kv, need_weights=True)
     torch.testing.assert_close(out, mha(q, kv, kv), rtol=1e-5, atol=1e-6)
     assert logits.shape == (2, 4, 5, 7)
+
+
+def test_folded_cross_attention_equals_the_textbook_form():
+    """fold_keys (the decoder's cross-attention) folds the key projection into the queries
+    and applies the value projection after the weighted sum: the same outputs, logits and
+    gradients as projecting every key and value (forward_reference), with non-zero biases
+    and a key mask; the logits (with the query's key-bias term) also under a softmax over
+    the queries, as the attention centres take them."""
+    torch.manual_seed(0)
+    folded = MultiHeadAttention(16, 4, 16, 12, 10, fold_keys=True)
+    with torch.no_grad():
+        for p in folded.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    plain = MultiHeadAttention(16, 4, 16, 12, 10)
+    plain.load_state_dict(folded.state_dict())
+    q, k, v = torch.randn(2, 5, 16), torch.randn(2, 9, 12), torch.randn(2, 9, 10)
+    mask = torch.ones(2, 9, dtype=torch.bool)
+    mask[0, :4] = False
+    for key_mask in (None, mask):
+        ins = [[t.clone().requires_grad_() for t in (q, k, v)] for _ in range(2)]
+        out_f, logits_f = folded(*ins[0], key_mask=key_mask, need_weights=True)
+        out_p, logits_p = plain(*ins[1], key_mask=key_mask, need_weights=True)
+        torch.testing.assert_close(out_f, out_p, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(logits_f, logits_p, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(folded(q, k, v, key_mask), plain(q, k, v, key_mask))
+        folded.zero_grad()
+        plain.zero_grad()
+        (out_f.square().sum() + logits_f.softmax(2).square().sum()).backward()
+        (out_p.square().sum() + logits_p.softmax(2).square().sum()).backward()
+        for a, b in zip(ins[0], ins[1]):
+            torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-5)
+        for (name, a), b in zip(folded.named_parameters(), plain.parameters()):
+            torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-5, msg=name)
+    # the decoder's cross-attention folds; its self-attention (K x K) does not
+    layer = SlotTransformerDecoder(model_config("smoke")).layers[0]
+    assert layer.ca.fold_keys and not layer.sa.fold_keys
 
 
 def test_slot_normalised_attention_maps_share_each_token_among_the_slots():

@@ -561,7 +561,9 @@ def test_knob_config_defaults_and_validation():
 
 def test_speedbench_report_table_and_json(tmp_path):
     variants = [
-        speedbench.Variant("original", {}, reference=True, paper_form_composer=True),
+        speedbench.Variant(
+            "original", {}, reference=True, paper_form_composer=True, reference_encode=True
+        ),
         speedbench.Variant("baseline", {}),
         speedbench.Variant("topk=2", {"slot_topk": 2}),
         speedbench.Variant("sharp-m baseline", {}, 8.0, reference=True),
@@ -576,13 +578,21 @@ def test_speedbench_report_table_and_json(tmp_path):
         threads=1,
         rss=False,
         variants=variants,
+        block=2,
         log=lambda s: None,
     )
+    assert rep["block"] == 2
     names = [r["name"] for r in rep["variants"]]
     assert names == [v.name for v in variants]
     orig, base = rep["variants"][:2]
     assert orig["ratio"] == 1.0 and orig["rgb_max_err"] == 0.0 and orig["kept_pairs"] == 1.0
     assert base["ratio_vs_baseline"] == 1.0 and base["rgb_max_err"] < 1e-5  # exact refactor
+    # the original's encode: default conv layout, textbook cross-attention
+    orig_model = speedbench.build_model("smoke", variants[0], None)
+    assert not orig_model.encoder.channels_last_on_cpu
+    assert not any(getattr(m, "fold_keys", False) for m in orig_model.slot_module.modules())
+    base_model = speedbench.build_model("smoke", variants[1], None)
+    assert base_model.encoder.channels_last_on_cpu and base_model.slot_module.layers[0].ca.fold_keys
     assert rep["variants"][2]["kept_pairs"] < 1.0
     assert "steps/s" in speedbench.format_table(rep)
     out = tmp_path / "bench.json"
