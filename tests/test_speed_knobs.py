@@ -31,13 +31,14 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
 import torch.nn.functional as F
 
 from benchmark.tools import speedbench
-from svorf.config import model_config
+from svorf.config import ModelConfig, model_config
 from svorf.field import HyperNetwork, SlotConditionedMLP, positional_encoding, sparse_tile_rows
 from svorf.model import SVORF, RenderOutput
 
@@ -654,3 +655,52 @@ def test_compare_train_steps_times_every_model_against_the_first():
     # Each timed call was a training step: the last one left its gradients.
     grads = [p.grad for p in models["b"].parameters() if p.grad is not None]
     assert grads and any(g.abs().sum() > 0 for g in grads)
+
+
+def test_speedbench_times_a_trained_runs_weights(tmp_path):
+    """--weights RUN: every variant starts from the run's weights; a run of another model
+    is refused in one line naming the first differing parameter."""
+    from svorf.checkpoint import write_checkpoint
+    from svorf.train_config import TrainConfig
+
+    def save(run: Path, cfg: ModelConfig) -> SVORF:
+        torch.manual_seed(3)
+        model = SVORF(cfg)
+        run.mkdir()
+        write_checkpoint(
+            run / "checkpoint.pt",
+            step=1,
+            model=model,
+            optimizer=torch.optim.Adam(model.parameters()),
+            gen=torch.Generator(),
+            device=torch.device("cpu"),
+            model_cfg=cfg,
+            train_cfg=TrainConfig(),
+            dataset={},
+            wall_s=0.0,
+            loss=0.0,
+        )
+        return model
+
+    cfg = model_config("smoke", **speedbench.KNOBS_OFF)
+    trained = save(tmp_path / "run", cfg)
+    like = speedbench.build_model("smoke", speedbench.Variant("init", {}), None).state_dict()
+    state = speedbench._run_weights(tmp_path / "run", like)
+    for k, v in trained.state_dict().items():
+        torch.testing.assert_close(state[k], v)
+    rep = speedbench.run(
+        "smoke",
+        scenes=1,
+        rays=4,
+        repeats=1,
+        threads=1,
+        rss=False,
+        variants=[speedbench.Variant("baseline", {}, reference=True)],
+        weights=tmp_path / "run",
+        log=lambda s: None,
+    )
+    assert rep["weights"] == str(tmp_path / "run")
+    save(tmp_path / "other", cfg.replace(slot_locality=1.0, slot_centre="anchored"))
+    with pytest.raises(ValueError, match="does not match") as e:
+        speedbench._run_weights(tmp_path / "other", like)
+    assert "\n" not in str(e.value)
