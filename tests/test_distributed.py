@@ -76,6 +76,7 @@ def _failure(stdout: str, stderr: str) -> str:
     return f"stdout (tail):\n{stdout[-1500:]}\nstderr (head):\n{head}\n...\n{tail}"
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_two_cpu_ranks_match_one_process_and_resume(split, tmp_path):
     ddp = tmp_path / "ddp"
@@ -130,6 +131,7 @@ def test_two_cpu_ranks_match_one_process_and_resume(split, tmp_path):
         assert rb["parts"]["psnr"] == pytest.approx(ra["parts"]["psnr"], rel=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(400)
 def test_two_launchers_as_two_nodes_train_what_one_node_of_two_ranks_trains(split, tmp_path):
     """Two torchrun agents, ``--nnodes 2 --node_rank 0/1 --nproc_per_node 1``, as on two

@@ -62,6 +62,7 @@ def _curves(rows: list[dict]) -> dict[tuple[str, str], list[dict]]:
     return out
 
 
+@pytest.mark.slow
 def test_report_is_schema_valid_and_measured(smoke):
     _, rep = smoke
     validate_report(rep)
@@ -78,6 +79,7 @@ def test_report_is_schema_valid_and_measured(smoke):
     assert "so no curve uses trained weights" in text
 
 
+@pytest.mark.slow
 def test_every_knob_has_a_curve(smoke):
     _, rep = smoke
     curves = _curves(rep["rows"])
@@ -93,6 +95,7 @@ def test_every_knob_has_a_curve(smoke):
         assert pts[0]["overrides"] == {}  # each curve starts at its own off instance
 
 
+@pytest.mark.slow
 def test_metrics_finite_and_tolerance_flag_consistent(smoke):
     _, rep = smoke
     for r in _step(rep["rows"]):
@@ -109,6 +112,7 @@ def test_metrics_finite_and_tolerance_flag_consistent(smoke):
         assert tol == want
 
 
+@pytest.mark.slow
 def test_baseline_and_exact_points(smoke):
     _, rep = smoke
     refs = [r for r in _step(rep["rows"]) if r["reference"]]
@@ -137,6 +141,7 @@ def test_baseline_and_exact_points(smoke):
     assert bf16["within_tolerance"]
 
 
+@pytest.mark.slow
 def test_figure_and_page(smoke):
     path, rep = smoke
     # no trained run: no training curve, so no training figure
@@ -172,6 +177,7 @@ def test_knob_points_follow_the_model(tmp_path):
     assert sum(p.reference for p in pts) == 1
 
 
+@pytest.mark.slow
 def test_uses_a_cached_trained_run(tmp_path, monkeypatch):
     """A finished benchmark run of the same model in <out>/runs gives a 'trained' table."""
     out, data = tmp_path / "reports", tmp_path / "data"
@@ -230,6 +236,7 @@ def _trained_run_case(out: Path, data: Path, monkeypatch) -> None:
 # ----------------------------------------------------------------------------- render curve
 
 
+@pytest.mark.slow
 def test_render_curve_without_a_trained_run(smoke):
     """No trained run: init weights on analytic scenes, differences against the default
     render only, PSNR / NV-ARI null with the reason."""
@@ -261,6 +268,7 @@ def test_render_curve_without_a_trained_run(smoke):
     assert "init weights" in info["why_no_ground_truth"]
 
 
+@pytest.mark.slow
 def test_fronts_knees_and_shipped_defaults(smoke):
     _, rep = smoke
     curves = rep["curves"]
@@ -398,6 +406,7 @@ def test_cached_run_steps_are_the_steps_done_not_the_limit():
 # ----------------------------------------------------------------------------- generator curve
 
 
+@pytest.mark.slow
 def test_generator_curve(smoke):
     """Seconds per view against PSNR vs a high-sample render over samples, denoiser and
     bounces (benchmark.tools.bench_quality), masks and depth identical at every point."""
