@@ -61,9 +61,8 @@ class MultiHeadAttention(nn.Module):
     q_h) . k_t + q_h . b_k,h``) and the value projection is applied after the weighted sum
     (the weights of a query sum to 1, so ``sum_t a_t (W_v,h v_t + b_v,h) = W_v,h sum_t a_t
     v_t + b_v,h``). Same parameters and, up to float rounding, the same outputs, logits and
-    gradients as :meth:`forward_reference`; per step it multiplies Lq x Dk per head
-    instead of Lk x dim. Every key must be attended by at least one query row (a fully
-    masked row is NaN in both forms).
+    gradients as :meth:`forward_reference`; the projections cost O(Lq Dk) per head instead
+    of O(Lk dim). A scene whose keys are all masked gets NaN in both forms.
     """
 
     def __init__(
