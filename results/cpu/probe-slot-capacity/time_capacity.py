@@ -6,8 +6,10 @@ decoder (``dec_layers`` 3 -> 4), a wider decoder feed-forward (``dec_ffn`` 256 -
 deeper encoder (``enc_blocks`` (1, 1, 1) -> (2, 2, 2)) and a wider one (``enc_width`` 32 ->
 48). One training step of each model in turn (interleaved), 2 threads, the recipe's
 batch (4 scenes x 128 rays, random images and rays from ``speedbench.make_batch``),
-progress 0.9. Run from the repository root, alone on the machine:
-    .venv/bin/python results/cpu/probe-slot-capacity/time_capacity.py 31 > results/cpu/probe-slot-capacity/time_capacity.json
+progress 0.9. At initialisation every slot's field runs at every point, so this
+under-prices encoder changes: the deeper encoder and decoder timed 1.09x here cost 1.34x a
+step in training. The committed JSON came from, at the repository root, alone:
+    .venv/bin/python results/cpu/probe-slot-capacity/time_capacity.py 21 > results/cpu/probe-slot-capacity/time_capacity.json
 """
 
 import json
