@@ -10,7 +10,7 @@ training step of each in turn (interleaved), 2 threads, the recipe's batch (4 sc
 real; the rays and targets are ``speedbench.make_batch``'s (into the scene box from a
 camera-like distance). The committed JSON came from, at the repository root, alone:
     .venv/bin/python results/cpu/probe-value-pos/time_value_pos.py RECIPE_RUN VPOS_RUN 21 \
-        > results/cpu/probe-value-pos/time_value_pos.json
+        DATA0/cpu/clevr567/train > results/cpu/probe-value-pos/time_value_pos.json
 """
 
 import json
@@ -25,9 +25,10 @@ from benchmark.tools.speedbench import compare_train_steps, make_batch
 from svorf.checkpoint import load_run
 
 torch.set_num_threads(2)
-recipe_run, vpos_run = sys.argv[1], sys.argv[2]
-repeats = int(sys.argv[3]) if len(sys.argv) > 3 else 15
-train_dir = Path(sys.argv[4]) if len(sys.argv) > 4 else Path("/work/data0/cpu/clevr567/train")
+if len(sys.argv) != 5:
+    sys.exit("usage: time_value_pos.py RECIPE_RUN VPOS_RUN REPEATS TRAIN_SPLIT_DIR")
+recipe_run, vpos_run, train_dir = sys.argv[1], sys.argv[2], Path(sys.argv[4])
+repeats = int(sys.argv[3])
 models = {}
 for name, run in (("recipe", recipe_run), ("dec_value_pos", vpos_run)):
     m, info = load_run(run)
