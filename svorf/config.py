@@ -55,6 +55,12 @@ class ModelConfig:
     None), or 1. At 64x64 input the last 3x3 up-sampling conv is most of the encoder's
     work; 1x1 convs cut it about ninefold (a recipe lever for steps per minute, not the
     paper)."""
+    enc_full_res: bool = False
+    """Hand the slot decoder a feature map at the input resolution instead of half of it:
+    a 3x3 stride-1 conv of the image (``enc_width`` channels) beside the last up-sampled
+    map, merged by one 1x1 conv (4x the tokens). Not the paper (its map is at half the
+    input). A recipe lever against the objects' blurred outline: where a token spans 2x2
+    pixels, an edge is only known to the nearest token."""
 
     # ---- slot decoder (paper 3.2 and appendix "Transformer-based module") ----
     num_slots: int = 8
@@ -539,6 +545,7 @@ _OMITTED_WHEN_FALSE = (
     "slot_relative",
     "fg_binary_all",
     "enc_bf16",
+    "enc_full_res",
 )
 
 

@@ -62,10 +62,13 @@ class ImageEncoder(nn.Module):
         feat_dim: output channels (paper: 512).
         norm: "batch" | "group" | "none".
         up_kernel: kernel side of the up-sampling convs (paper: 3; 1 is a cheaper head).
+        full_res: also up-sample to the input resolution, through a stride-1 3x3 conv of
+            the image merged with the last map by a 1x1 conv (not the paper).
 
     Input ``images`` [B, 3, H, W] with values in [0, 1] (H, W multiples of 8); they are
     mapped to [-1, 1] here (with PyTorch-style [0, 1] inputs and default biases the features
-    were found to be nearly image-independent, docs/notes/cpu_recipe.md). Output [B, feat_dim, H/2, W/2].
+    were found to be nearly image-independent, docs/notes/cpu_recipe.md). Output [B, feat_dim, H/2, W/2],
+    or [B, feat_dim, H, W] with ``full_res``.
 
     On CPU the convolutions run on channels-last tensors (:attr:`channels_last_on_cpu`):
     oneDNN's kernels are faster in that layout (the encoder's forward + backward about 1.2x
@@ -83,6 +86,7 @@ class ImageEncoder(nn.Module):
         feat_dim: int = 512,
         norm: str = "batch",
         up_kernel: int = 3,
+        full_res: bool = False,
     ) -> None:
         super().__init__()
         w = width
@@ -99,6 +103,10 @@ class ImageEncoder(nn.Module):
         self.up1 = nn.Conv2d(4 * w, feat_dim, k, 1, pad)
         self.up2 = nn.Conv2d(feat_dim + 2 * w, feat_dim, k, 1, pad)
         self.up3 = nn.Conv2d(feat_dim + w, feat_dim, k, 1, pad)
+        self.full_res = full_res
+        if full_res:
+            self.stem_full = nn.Conv2d(3, w, 3, 1, 1)
+            self.up4 = nn.Conv2d(feat_dim + w, feat_dim, 1)
         self.out_dim = feat_dim
         self.reset_parameters()
 
@@ -120,7 +128,8 @@ class ImageEncoder(nn.Module):
                 nn.init.zeros_(m.bias)
 
     def forward(self, images: Tensor) -> Tensor:
-        """[B, 3, H, W] in [0, 1] -> feature map [B, feat_dim, H/2, W/2]."""
+        """[B, 3, H, W] in [0, 1] -> feature map [B, feat_dim, H/2, W/2] ([B, feat_dim, H, W]
+        with ``full_res``)."""
         if images.dim() != 4 or images.shape[1] != 3:
             raise ValueError(
                 f"ImageEncoder: images must be [B, 3, H, W], got {tuple(images.shape)}"
@@ -139,4 +148,9 @@ class ImageEncoder(nn.Module):
         h = F.interpolate(h, size=f2.shape[-2:], mode="bilinear", align_corners=False)
         h = F.relu(self.up2(torch.cat([h, f2], dim=1)))
         h = F.interpolate(h, size=f1.shape[-2:], mode="bilinear", align_corners=False)
-        return F.relu(self.up3(torch.cat([h, f1], dim=1)))
+        h = F.relu(self.up3(torch.cat([h, f1], dim=1)))
+        if not self.full_res:
+            return h
+        h = F.interpolate(h, size=x.shape[-2:], mode="bilinear", align_corners=False)
+        f0 = F.relu(self.stem_full(x))  # [B, w, H, W]
+        return F.relu(self.up4(torch.cat([h, f0], dim=1)))

@@ -119,7 +119,12 @@ class SVORF(nn.Module):
             raise TypeError(f"SVORF: cfg must be a ModelConfig, got {type(cfg).__name__}")
         self.cfg = cfg
         self.encoder = ImageEncoder(
-            cfg.enc_width, cfg.enc_blocks, cfg.feat_dim, cfg.enc_norm, cfg.enc_up_kernel or 3
+            cfg.enc_width,
+            cfg.enc_blocks,
+            cfg.feat_dim,
+            cfg.enc_norm,
+            cfg.enc_up_kernel or 3,
+            full_res=cfg.enc_full_res,
         )
         self.slot_module = build_slot_module(cfg)
         self.fields = build_fields(cfg)

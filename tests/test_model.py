@@ -147,6 +147,39 @@ def test_encoder_up_kernel_one_is_a_cheaper_head_of_the_same_shape():
         dataclasses.replace(base, enc_up_kernel=2)
 
 
+
+def test_encoder_full_res_hands_the_decoder_a_map_at_the_input_resolution():
+    """enc_full_res: the map (and so the decoder's tokens and attention) at H x W, not
+    H/2 x W/2; the half-resolution part keeps its weights, the two new convs learn."""
+    torch.manual_seed(0)
+    x = make_images(2, 32)
+    half = ImageEncoder(8, (1, 1, 1), 16, "group")
+    full = ImageEncoder(8, (1, 1, 1), 16, "group", full_res=True)
+    missing = full.load_state_dict(half.state_dict(), strict=False).missing_keys
+    assert sorted(missing) == [
+        "stem_full.bias", "stem_full.weight", "up4.bias", "up4.weight"
+    ]  # fmt: skip
+    assert half(x).shape == (2, 16, 16, 16)
+    out = full(x)
+    assert out.shape == (2, 16, 32, 32)
+    out.square().sum().backward()
+    for name in ("stem_full", "up4", "up3", "stem"):
+        grads = [p.grad for p in getattr(full, name).parameters()]
+        assert all(g is not None and g.abs().sum() > 0 for g in grads), name
+    # the config field: off by default and then not in the config dict (earlier runs' keys stay)
+    base = model_config("smoke", num_slots=4)
+    assert base.enc_full_res is False and "enc_full_res" not in base.to_dict()
+    assert model_config("paper").enc_full_res is False
+    cfg = dataclasses.replace(base, enc_full_res=True)
+    assert cfg.to_dict()["enc_full_res"] is True
+    assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+    torch.manual_seed(0)
+    model = SVORF(cfg)
+    images = make_images(2, cfg.image_size)
+    slots, attn = model.encode(images, return_attn=True)
+    assert slots.shape == (2, 4, cfg.slot_dim)
+    assert attn.shape == (2, 4, cfg.image_size, cfg.image_size)
+
 # ----------------------------------------------------------------------------- fields
 
 
