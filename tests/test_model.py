@@ -147,7 +147,6 @@ def test_encoder_up_kernel_one_is_a_cheaper_head_of_the_same_shape():
         dataclasses.replace(base, enc_up_kernel=2)
 
 
-
 def test_encoder_full_res_hands_the_decoder_a_map_at_the_input_resolution():
     """enc_full_res: the map (and so the decoder's tokens and attention) at H x W, not
     H/2 x W/2; the half-resolution part keeps its weights, the two new convs learn."""
@@ -179,6 +178,7 @@ def test_encoder_full_res_hands_the_decoder_a_map_at_the_input_resolution():
     slots, attn = model.encode(images, return_attn=True)
     assert slots.shape == (2, 4, cfg.slot_dim)
     assert attn.shape == (2, 4, cfg.image_size, cfg.image_size)
+
 
 # ----------------------------------------------------------------------------- fields
 
