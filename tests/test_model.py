@@ -807,8 +807,11 @@ def test_folded_cross_attention_equals_the_textbook_form():
         (out_p.square().sum() + logits_p.softmax(2).square().sum()).backward()
         for a, b in zip(ins[0], ins[1]):
             torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-5)
+        # relative to each gradient's norm: the key bias's gradient is a sum of cancelling
+        # terms as large as the other gradients (|g| ~ 50), so float32 rounding leaves about
+        # 1e-5 absolute error there on some CPUs (AMD EPYC: 1.7e-5, 8e-6 of its norm)
         for (name, a), b in zip(folded.named_parameters(), plain.parameters()):
-            torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-5, msg=name)
+            assert (a.grad - b.grad).norm() <= 1e-4 * b.grad.norm(), name
     # the decoder's cross-attention folds; its self-attention (K x K) does not
     layer = SlotTransformerDecoder(model_config("smoke")).layers[0]
     assert layer.ca.fold_keys and not layer.sa.fold_keys
