@@ -70,6 +70,7 @@ RENDER_PROBE_FIELDS = (
     "box_z",
     "clip_floor_z",
     "clip_floor_front",
+    "eval_mask_rule",
 )
 
 #: Fields that may differ between a checkpoint and the config that resumes it.
@@ -384,7 +385,9 @@ def render_probe(model: SVORF, changes: dict[str, Any]) -> SVORF:
     floor at render time: how much of the segmentation's error lives there, before a
     training run with that value is spent; ``{"n_fine": 64}`` renders with more samples
     per ray (is an error the quadrature's?); ``{"comp_temperature": 0.5}`` sharpens the
-    slot-guided soft masks m (is an error the masks' softness or the fields'?). The model
+    slot-guided soft masks m (is an error the masks' softness or the fields'?);
+    ``{"eval_mask_rule": "peak"}`` reads each pixel's masks from its largest-weight sample
+    (is the rim a half-transparent rind in front of the floor?). The model
     is changed in place and returned.
 
     Raises:

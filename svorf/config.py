@@ -248,6 +248,14 @@ class ModelConfig:
     coarse estimate and only the refinement there is skipped. Bins with w_i < 1/n_fine
     receive at most about one fine sample, so thresholds below that save little. None =
     off: every fine sample evaluated (paper)."""
+    eval_mask_rule: str | None = None
+    """How a pixel's slot distribution is read from its ray at evaluation. None
+    (``"composite"``, the paper): the soft masks m of every sample weighted by its
+    volume-rendering weight, ``sum_i w_i m_i / acc``. ``"peak"``: the soft masks of the
+    sample of largest weight alone, the slot of the surface the ray meets; a thin,
+    half-transparent rind of object matter in front of the floor then gives the pixel to
+    the floor when the floor's sample outweighs each of the rind's. Colour, depth and
+    opacity are unchanged. Rays with no weight fall back to the mean mask in both forms."""
 
     # ---- cpu-scale training recipe (docs/notes/cpu_recipe.md; all off at paper scale) ----
     fg_zmin: float | None = None
@@ -525,6 +533,7 @@ _TUPLES = {
 _OMITTED_WHEN_NONE = (
     "eval_early_stop",
     "eval_fine_min_weight",
+    "eval_mask_rule",
     "bg_pos_freqs_xyz",
     "box_z",
     "bg_chroma_fade",

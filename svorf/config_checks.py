@@ -215,6 +215,11 @@ def check(cfg: Any) -> None:
         v = getattr(cfg, name)
         if v is not None and not 0.0 < v < 1.0:
             raise ValueError(f"ModelConfig.{name} must be in (0, 1) or None (off), got {v!r}")
+    if cfg.eval_mask_rule not in (None, "composite", "peak"):
+        raise ValueError(
+            f"ModelConfig.eval_mask_rule must be None (the paper's weighted masks), "
+            f"'composite' (the same) or 'peak', got {cfg.eval_mask_rule!r}"
+        )
     if cfg.enc_up_kernel not in (None, 1, 3):
         raise ValueError(
             f"ModelConfig.enc_up_kernel must be None (3x3, the paper), 1 or 3, "

@@ -43,6 +43,7 @@ __all__ = [
     "RayMarcher",
     "log_transmittance",
     "merge_queries",
+    "ray_slot_probs",
 ]
 
 #: Segments of one pass's samples between two transmittance checks of ``early_stop``: more
@@ -118,6 +119,24 @@ class MarchResult:
     t: Tensor
     q: FieldQuery
     coarse_rgb: Tensor
+
+
+def ray_slot_probs(w: Tensor, m: Tensor, acc: Tensor, rule: str | None = None) -> Tensor:
+    """Each ray's slot distribution [B, R, K] from its samples' weights w [B, R, N], soft
+    masks m [B, R, N, K] and opacity acc [B, R] (``ModelConfig.eval_mask_rule``).
+
+    None or ``"composite"`` (the paper): ``sum_i w_i m_i / acc``. ``"peak"``: ``m`` of the
+    sample of largest weight. Rays with acc ~ 0 fall back to the mean mask over the
+    samples, so every row is a distribution in both forms.
+    """
+    eps = 1e-6
+    if rule == "peak":
+        peak = w.argmax(dim=2, keepdim=True)  # [B, R, 1]
+        w_peak = w.gather(2, peak)
+        m_peak = m.gather(2, peak[..., None].expand(-1, -1, -1, m.shape[-1]))[:, :, 0]
+        return (w_peak * m_peak + eps * m.mean(dim=2)) / (w_peak + eps)
+    num = torch.einsum("brn,brnk->brk", w, m)
+    return (num + eps * m.mean(dim=2)) / (acc[..., None] + eps)
 
 
 def merge_queries(a: FieldQuery, b: FieldQuery, order: Tensor) -> FieldQuery:

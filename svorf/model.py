@@ -57,7 +57,7 @@ from .losses import (
     ray_distortion,
     soft_matter,
 )
-from .march import FieldQuery, QueryContext, RayMarcher
+from .march import FieldQuery, QueryContext, RayMarcher, ray_slot_probs
 from .pairs import PairCount, eval_kept, select_pairs, selects_by_m
 from .render import clip_rays_to_box
 
@@ -352,9 +352,8 @@ class SVORF(nn.Module):
         slot_probs = None
         connectivity = rgb.new_zeros(())
         if need_aux:
-            eps = 1e-6  # rays with acc ~ 0 fall back to the mean mask: still a distribution
-            num = torch.einsum("brn,brnk->brk", w, q.m)
-            slot_probs = (num + eps * q.m.mean(dim=2)) / (acc[..., None] + eps)
+            rule = cfg.eval_mask_rule if evaluating else None
+            slot_probs = ray_slot_probs(w, q.m, acc, rule)
             if cfg.connectivity:
                 connectivity = connectivity_loss(q.sigma_k, t, far_r, cfg.near, cfg.far, slot_mask)
         bg_rgb = None

@@ -1,6 +1,7 @@
 """Evaluation-only speed knobs of the model ("early termination of opaque rays at
 evaluation", fine samples only where the coarse weights are non-negligible):
-``ModelConfig.eval_early_stop`` and ``ModelConfig.eval_fine_min_weight``.
+``ModelConfig.eval_early_stop`` and ``ModelConfig.eval_fine_min_weight``; and the reading
+of masks from the largest-weight sample, ``ModelConfig.eval_mask_rule``.
 
 Off is the exact path; on stays within a stated tolerance of it on a small random model
 (whose init densities make rays opaque within the box, so early termination does skip
@@ -225,3 +226,43 @@ def test_knobs_with_object_transforms():
     _check_distribution(out)
     err = _errors(out, base)
     assert all(err[k] <= TOL_MINW[k] for k in err), err
+
+
+def test_peak_mask_rule_hand_example():
+    """A half-transparent rind of object matter in front of the floor: the composite masks
+    give the pixel to the object (0.55 of the weight), the peak rule to the floor (its
+    one sample outweighs each of the rind's)."""
+    obj, bg = torch.tensor([1.0, 0.0]), torch.tensor([0.0, 1.0])
+    w = torch.tensor([[[0.2, 0.2, 0.15, 0.4, 0.0]]])
+    m = torch.stack([obj, obj, obj, bg, bg])[None, None]  # [1, 1, 5, 2]
+    acc = w.sum(-1)
+    comp = march_mod.ray_slot_probs(w, m, acc)
+    assert torch.allclose(comp, torch.tensor([[[0.55 / 0.95, 0.4 / 0.95]]]), atol=1e-5)
+    assert torch.equal(march_mod.ray_slot_probs(w, m, acc, "composite"), comp)
+    peak = march_mod.ray_slot_probs(w, m, acc, "peak")
+    assert torch.allclose(peak, bg[None, None], atol=1e-5)
+    empty = torch.zeros_like(w)  # no weight: the mean mask in both forms
+    for rule in (None, "peak"):
+        p = march_mod.ray_slot_probs(empty, m, empty.sum(-1), rule)
+        assert torch.allclose(p, m.mean(dim=2), atol=1e-6)
+
+
+def test_peak_mask_rule_changes_only_the_masks_and_only_at_evaluation():
+    _, model, slots, o, d = _setup()
+    base = model.render_chunked(slots, o, d)
+    on = _with(model, eval_mask_rule="peak")
+    out = on.render_chunked(slots, o, d)
+    for n in ("rgb", "depth", "acc", "coarse_rgb"):
+        assert torch.equal(getattr(base, n), getattr(out, n)), n
+    _check_distribution(out)
+    assert not torch.allclose(out.slot_probs, base.slot_probs)
+    torch.manual_seed(1)
+    a = model.render_rays(slots, o, d, perturb=True)  # training: the paper's masks
+    torch.manual_seed(1)
+    b = on.render_rays(slots, o, d, perturb=True)
+    assert torch.equal(a.slot_probs, b.slot_probs)
+    cfg = model.cfg
+    assert "eval_mask_rule" not in cfg.to_dict()
+    assert ModelConfig.from_dict(on.cfg.to_dict()) == on.cfg
+    with pytest.raises(ValueError, match="eval_mask_rule"):
+        model_config("smoke", eval_mask_rule="surface")
