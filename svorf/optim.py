@@ -17,6 +17,7 @@ the whole step is 1.049x faster (``speedbench --optimizer``, 2 threads).
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -25,8 +26,20 @@ FUSED_DEVICES = ("cpu", "cuda")
 """Device types with a fused Adam kernel in torch (2.4 and later)."""
 
 
+def param_groups(model: torch.nn.Module, enc_lr_scale: float = 1.0) -> list[dict[str, Any]]:
+    """Adam's parameter groups for ``TrainConfig.enc_lr_scale``: one group (every
+    parameter) at 1, else the slot inference (``model.encoder`` and ``model.slot_module``)
+    in a second group whose ``"lr_scale"`` the training step multiplies its rate by."""
+    if enc_lr_scale == 1.0:
+        return [{"params": list(model.parameters())}]
+    enc = {id(p) for m in (model.encoder, model.slot_module) for p in m.parameters()}
+    rest = [p for p in model.parameters() if id(p) not in enc]
+    inference = [p for p in model.parameters() if id(p) in enc]
+    return [{"params": rest}, {"params": inference, "lr_scale": float(enc_lr_scale)}]
+
+
 def make_optimizer(
-    params: Iterable[torch.nn.Parameter],
+    params: Iterable[torch.nn.Parameter] | Iterable[dict[str, Any]],
     lr: float,
     betas: tuple[float, float],
     device: torch.device | str,

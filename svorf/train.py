@@ -75,7 +75,7 @@ from svorf.checkpoint import (
 from svorf.config import ModelConfig, bf16_autocast_on
 from svorf.data import MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
-from svorf.optim import WeightAverage, grad_norm, make_optimizer
+from svorf.optim import WeightAverage, grad_norm, make_optimizer, param_groups
 from svorf.predict import ScenePrediction, default_eval, predict_scene
 from svorf.ray_sampling import ErrorMap
 from svorf.run_records import (
@@ -348,7 +348,8 @@ def _setup(
     model: torch.nn.Module = SVORF(model_cfg).to(device)
     if dctx is not None:
         model = distributed.prepare_model(model, device, dctx)
-    opt = make_optimizer(model.parameters(), lr_at(train_cfg, 0), train_cfg.betas, device)
+    groups = param_groups(getattr(model, "module", model), train_cfg.enc_lr_scale)
+    opt = make_optimizer(groups, lr_at(train_cfg, 0), train_cfg.betas, device)
     out.mkdir(parents=True, exist_ok=True)
     ema = train_cfg.ema_decay
     average = WeightAverage(model.named_parameters(), ema) if ema else None
@@ -479,7 +480,7 @@ def _train_step(
     cfg, model, opt = run.train_cfg, run.model, run.opt
     lr = lr_at(cfg, step, progress)
     for group in opt.param_groups:
-        group["lr"] = lr
+        group["lr"] = lr * group.get("lr_scale", 1.0)
     getattr(model, "module", model).set_progress(progress)
     smp = run.sampler_warm if step < cfg.nvs_warmup else run.sampler
     share, with_input = cfg.salient_share(progress), cfg.input_view_targeted(progress)

@@ -150,6 +150,11 @@ class TrainConfig:
     (``svorf.optim.WeightAverage``; 0 = off, the paper). Training itself is unchanged;
     checkpoints also hold the average (``model_ema``) and ``load_run`` evaluates it unless
     asked for the raw weights, so one run scores both. A lever (docs/notes/cpu_recipe.md)."""
+    enc_lr_scale: float = 1.0
+    """The learning rate of the slot inference (the image encoder and the slot decoder:
+    ``SVORF.encoder``, ``SVORF.slot_module``) as a multiple of ``lr`` at every step, warm-up
+    and decay included; every other parameter keeps ``lr``. 1 = one rate for all (the
+    paper). A lever (docs/notes/cpu_recipe.md)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
@@ -177,6 +182,12 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
             raise ValueError(f"TrainConfig.betas must be two numbers in [0, 1), got {self.betas}")
+        object.__setattr__(self, "enc_lr_scale", float(self.enc_lr_scale))
+        if not (math.isfinite(self.enc_lr_scale) and self.enc_lr_scale > 0.0):
+            raise ValueError(
+                f"TrainConfig.enc_lr_scale must be a positive number (1 = one learning rate "
+                f"for all), got {self.enc_lr_scale}"
+            )
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"TrainConfig.ema_decay must be in [0, 1), got {self.ema_decay}")
         if self.target_size is not None and int(self.target_size) < 8:
@@ -235,7 +246,7 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
         ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter``,
-        ``coarse_to_fine`` and ``ema_decay`` only when set, so that the keys of earlier runs stay valid."""
+        ``coarse_to_fine``, ``ema_decay`` and ``enc_lr_scale`` only when set, so that the keys of earlier runs stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         if d["salient_fade"] is None:
@@ -246,6 +257,8 @@ class TrainConfig:
             del d["target_size"]
         if not d["ema_decay"]:
             del d["ema_decay"]
+        if d["enc_lr_scale"] == 1.0:
+            del d["enc_lr_scale"]
         if d["input_view_from"] is None:
             del d["input_view_from"]
         if not d["pixel_jitter"]:

@@ -509,3 +509,36 @@ def test_cli_train_render_info(split, tmp_path, capsys):
     n = SVORF(model_config("smoke", num_slots=4)).count_parameters()
     assert f"{n:,} parameters" in capsys.readouterr().out
     shutil.rmtree(run)
+
+
+def test_enc_lr_scale_steps_the_slot_inference_at_a_multiple_and_resumes(split, tmp_path):
+    from svorf.optim import param_groups
+
+    fast = {"enc_lr_scale": 2.5}
+    full, part, plain = tmp_path / "full", tmp_path / "part", tmp_path / "plain"
+    train(split, full, MCFG, tcfg(**fast), progress=False)
+    train(split, part, MCFG, tcfg(steps=3, **fast), progress=False)
+    train(split, part, MCFG, tcfg(**fast), resume=True, progress=False)
+    a = torch.load(full / "checkpoint.pt", weights_only=True)
+    b = torch.load(part / "checkpoint.pt", weights_only=True)
+    for k, v in a["model"].items():
+        assert torch.equal(v, b["model"][k]), k
+    rest, inference = a["optimizer"]["param_groups"]
+    assert inference["lr"] == pytest.approx(2.5 * rest["lr"]) and rest["lr"] > 0
+    model = SVORF(MCFG)
+    groups = param_groups(model, 2.5)
+    enc = {id(p) for m in (model.encoder, model.slot_module) for p in m.parameters()}
+    assert {id(p) for p in groups[1]["params"]} == enc
+    assert len(groups[0]["params"]) + len(groups[1]["params"]) == len(list(model.parameters()))
+    # At 1: one group, and the config key of the runs before the field existed.
+    assert len(param_groups(model)) == 1
+    assert "enc_lr_scale" not in tcfg().to_dict() and tcfg(**fast).to_dict()["enc_lr_scale"] == 2.5
+    assert TrainConfig.from_dict(tcfg(**fast).to_dict()) == tcfg(**fast)
+    train(split, plain, MCFG, tcfg(steps=1), progress=False)
+    assert (
+        len(torch.load(plain / "checkpoint.pt", weights_only=True)["optimizer"]["param_groups"])
+        == 1
+    )
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="enc_lr_scale"):
+            tcfg(enc_lr_scale=bad)
