@@ -88,22 +88,32 @@ def test_config_key_names_what_is_learned():
     assert set(changed) == set(BOOKKEEPING_FIELDS)
     assert config_key(m, t.replace(**changed)) == key
     every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
-    # target_size, salient_fade, input_view_from, pixel_jitter, coarse_to_fine and ema_decay
-    # are written only when set, so the keys of earlier runs stay valid (the cpu recipe sets
-    # ema_decay)
-    unset = {"target_size", "salient_fade", "input_view_from", "pixel_jitter", "coarse_to_fine"}
+    # target_size, salient_fade, input_view_from, pixel_jitter, coarse_to_fine, ema_decay and
+    # enc_lr_scale are written only when set, so the keys of earlier runs stay valid (the cpu
+    # recipe sets ema_decay)
+    unset = {
+        "target_size",
+        "salient_fade",
+        "input_view_from",
+        "pixel_jitter",
+        "coarse_to_fine",
+        "enc_lr_scale",
+    }
     assert t.ema_decay == 0.999 and set(learning_fields(t)) == every - unset
     plain = t.replace(ema_decay=0.0)
     assert set(learning_fields(plain)) == every - unset - {"ema_decay"}
     finer = t.replace(
         target_size=128, salient_fade=(0.5, 0.7), input_view_from=0.5, pixel_jitter=1.0
     )
-    assert set(learning_fields(finer)) == every - {"coarse_to_fine"}
+    assert set(learning_fields(finer)) == every - {"coarse_to_fine", "enc_lr_scale"}
     assert config_key(m, finer) != key
     coarse = t.replace(coarse_to_fine=(2, 0.5))
     assert set(learning_fields(coarse)) == every - unset | {"coarse_to_fine"}
     assert config_key(m, coarse) != key
     assert config_key(m, plain) != key
+    faster = t.replace(enc_lr_scale=2.0)
+    assert set(learning_fields(faster)) == every - unset | {"enc_lr_scale"}
+    assert config_key(m, faster) != key
     assert config_key(m, t.replace(seed=1)) != key
     assert config_key(m.replace(num_slots=7), t) != key
     assert config_key(*run_configs("cpu", "clevr567", recipe=False)) != key
