@@ -82,6 +82,11 @@ class TrainConfig:
     run reaches the low rate when its time runs out whatever its speed."""
     lr_final_ratio: float = 0.05
     """Final learning rate over ``lr`` of ``lr_decay="cosine"``."""
+    lr_decay_from: float = 0.0
+    """Progress (as for ``lr_decay``) where the cosine starts: the rate stays ``lr`` until
+    then and falls to ``lr * lr_final_ratio`` over the rest of the run (0 = over the whole
+    run). A late decay keeps the full rate for most of the run and settles the weights at
+    its end. Keyed only when set."""
     seed: int = 0
     """Seeds parameter init, data sampling and the model's own randomness."""
     ray_sampling: str = "uniform"
@@ -178,6 +183,17 @@ class TrainConfig:
             raise ValueError(
                 f"TrainConfig.lr_final_ratio must be in [0, 1], got {self.lr_final_ratio}"
             )
+        object.__setattr__(self, "lr_decay_from", float(self.lr_decay_from))
+        if not 0.0 <= self.lr_decay_from < 1.0:
+            raise ValueError(
+                "TrainConfig.lr_decay_from must be a progress in [0, 1) (where the cosine "
+                f"starts), got {self.lr_decay_from}"
+            )
+        if self.lr_decay_from and self.lr_decay != "cosine":
+            raise ValueError(
+                f"TrainConfig.lr_decay_from={self.lr_decay_from} needs lr_decay='cosine' "
+                f"(got {self.lr_decay!r}): it says where the cosine starts"
+            )
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
@@ -246,7 +262,8 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
         ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter``,
-        ``coarse_to_fine``, ``ema_decay`` and ``enc_lr_scale`` only when set, so that the keys of earlier runs stay valid."""
+        ``coarse_to_fine``, ``ema_decay``, ``enc_lr_scale`` and ``lr_decay_from`` only when set, so
+        that the keys of earlier runs stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         if d["salient_fade"] is None:
@@ -259,6 +276,8 @@ class TrainConfig:
             del d["ema_decay"]
         if d["enc_lr_scale"] == 1.0:
             del d["enc_lr_scale"]
+        if not d["lr_decay_from"]:
+            del d["lr_decay_from"]
         if d["input_view_from"] is None:
             del d["input_view_from"]
         if not d["pixel_jitter"]:
@@ -452,7 +471,8 @@ def resolve_device(name: str = "auto") -> torch.device:
 
 def lr_at(cfg: TrainConfig, step: int, progress: float | None = None) -> float:
     """Learning rate of optimizer step ``step`` (0-based): linear warm-up, then constant
-    (``lr_decay="none"``) or a half cosine to ``lr * lr_final_ratio`` (``"cosine"``).
+    (``lr_decay="none"``) or a half cosine to ``lr * lr_final_ratio`` (``"cosine"``) over
+    the progress from ``lr_decay_from`` to 1.
 
     ``progress`` in [0, 1] is how far the run is (default ``step / steps``; a time-budgeted
     run passes the larger of that and its wall-time fraction).
@@ -461,7 +481,8 @@ def lr_at(cfg: TrainConfig, step: int, progress: float | None = None) -> float:
         return cfg.lr * (step + 1) / cfg.warmup
     if cfg.lr_decay == "cosine":
         p = step / cfg.steps if progress is None else progress
-        p = min(max(float(p), 0.0), 1.0)
+        p0 = cfg.lr_decay_from
+        p = min(max((float(p) - p0) / (1.0 - p0), 0.0), 1.0)
         r = cfg.lr_final_ratio
         return cfg.lr * (r + (1.0 - r) * 0.5 * (1.0 + math.cos(math.pi * p)))
     return cfg.lr

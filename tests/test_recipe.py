@@ -620,3 +620,21 @@ def test_cosine_lr_decay_follows_steps_or_the_wall_budget():
     assert lr_at(flat, 999) == lr_at(flat, 10, progress=1.0) == 1e-3
     with pytest.raises(ValueError, match="lr_decay"):
         TrainConfig(lr_decay="step")
+
+
+def test_late_cosine_keeps_the_rate_until_its_start():
+    from svorf.train import TrainConfig, lr_at
+
+    cfg = TrainConfig(
+        steps=1000, lr=1e-3, warmup=10, lr_decay="cosine", lr_final_ratio=0.1, lr_decay_from=0.8
+    )
+    assert lr_at(cfg, 500) == lr_at(cfg, 800) == pytest.approx(1e-3)
+    assert lr_at(cfg, 900) == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5))
+    assert lr_at(cfg, 10, progress=0.9) == pytest.approx(lr_at(cfg, 900))
+    assert lr_at(cfg, 999, progress=1.0) == pytest.approx(1e-4)
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+    assert "lr_decay_from" not in cfg.replace(lr_decay_from=0.0).to_dict()
+    with pytest.raises(ValueError, match="lr_decay_from.*cosine"):
+        TrainConfig(lr_decay_from=0.8)
+    with pytest.raises(ValueError, match=r"lr_decay_from must be a progress in \[0, 1\)"):
+        TrainConfig(lr_decay="cosine", lr_decay_from=1.0)

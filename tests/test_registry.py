@@ -88,9 +88,9 @@ def test_config_key_names_what_is_learned():
     assert set(changed) == set(BOOKKEEPING_FIELDS)
     assert config_key(m, t.replace(**changed)) == key
     every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
-    # target_size, salient_fade, input_view_from, pixel_jitter, coarse_to_fine, ema_decay and
-    # enc_lr_scale are written only when set, so the keys of earlier runs stay valid (the cpu
-    # recipe sets ema_decay)
+    # target_size, salient_fade, input_view_from, pixel_jitter, coarse_to_fine, ema_decay,
+    # enc_lr_scale and lr_decay_from are written only when set, so the keys of earlier runs
+    # stay valid (the cpu recipe sets ema_decay)
     unset = {
         "target_size",
         "salient_fade",
@@ -98,6 +98,7 @@ def test_config_key_names_what_is_learned():
         "pixel_jitter",
         "coarse_to_fine",
         "enc_lr_scale",
+        "lr_decay_from",
     }
     assert t.ema_decay == 0.999 and set(learning_fields(t)) == every - unset
     plain = t.replace(ema_decay=0.0)
@@ -105,7 +106,11 @@ def test_config_key_names_what_is_learned():
     finer = t.replace(
         target_size=128, salient_fade=(0.5, 0.7), input_view_from=0.5, pixel_jitter=1.0
     )
-    assert set(learning_fields(finer)) == every - {"coarse_to_fine", "enc_lr_scale"}
+    assert set(learning_fields(finer)) == every - {
+        "coarse_to_fine",
+        "enc_lr_scale",
+        "lr_decay_from",
+    }
     assert config_key(m, finer) != key
     coarse = t.replace(coarse_to_fine=(2, 0.5))
     assert set(learning_fields(coarse)) == every - unset | {"coarse_to_fine"}
@@ -114,6 +119,9 @@ def test_config_key_names_what_is_learned():
     faster = t.replace(enc_lr_scale=2.0)
     assert set(learning_fields(faster)) == every - unset | {"enc_lr_scale"}
     assert config_key(m, faster) != key
+    late = t.replace(lr_decay="cosine", lr_decay_from=0.8)
+    assert set(learning_fields(late)) == every - unset | {"lr_decay_from"}
+    assert config_key(m, late) != config_key(m, t.replace(lr_decay="cosine")) != key
     assert config_key(m, t.replace(seed=1)) != key
     assert config_key(m.replace(num_slots=7), t) != key
     assert config_key(*run_configs("cpu", "clevr567", recipe=False)) != key
