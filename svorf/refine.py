@@ -30,12 +30,71 @@ from torch import Tensor
 
 from svorf.model import SVORF
 
-__all__ = ["REFINE_LR", "REFINE_RAYS", "refine_slots"]
+__all__ = ["REFINE_LR", "REFINE_RAYS", "refine_batch", "refine_slots"]
 
 #: Adam learning rate of the slots (slot vectors are O(1) per component).
 REFINE_LR = 3e-3
 #: Random pixels of the fitted view(s) per refinement step.
 REFINE_RAYS = 1024
+
+
+def _check_centres(model: SVORF, who: str) -> None:
+    if model.cfg.slot_centre.startswith("attention") and model.cfg.slot_locality is not None:
+        raise ValueError(
+            f"{who}: slot_centre={model.cfg.slot_centre!r} takes its centres from the "
+            "encoder's attention, not the slots; refinement needs 'anchored' or 'learned'"
+        )
+
+
+def refine_batch(
+    model: SVORF,
+    slots: Tensor,
+    rays_o: Tensor,
+    rays_d: Tensor,
+    target_rgb: Tensor,
+    *,
+    steps: int,
+    lr: float = REFINE_LR,
+    input_c2w: Tensor | None = None,
+    slot_mask: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Refine a batch of scenes' slots on the given rays: the target of
+    ``TrainConfig.slot_distill``.
+
+    Adam on the slot vectors alone, ``steps`` steps, every step on all ``R`` rays of each
+    scene, deterministic samples, photometric MSE. The model's parameters get no gradient
+    (only the slots' gradient is computed, so the parameters' ``requires_grad`` and any
+    graph already built through them are left alone) and its mode is unchanged.
+
+    Args:
+        model: as for :func:`refine_slots`.
+        slots: [B, K, D]; detached before use.
+        rays_o, rays_d, target_rgb: [B, R, 3].
+        steps, lr: Adam steps (>= 1) and learning rate.
+        input_c2w: [B, 4, 4] each scene's input camera.
+        slot_mask: [B, K] as for :meth:`SVORF.render_rays`.
+
+    Returns:
+        ``(refined slots [B, K, D] detached, float32; [2] the MSE of the first and the
+        last step, each before its update)``.
+    """
+    if steps < 1 or not lr > 0:
+        raise ValueError(f"refine_batch: steps must be >= 1 and lr > 0, got {steps}, {lr}")
+    _check_centres(model, "refine_batch")
+    target = target_rgb.to(device=slots.device, dtype=torch.float32)
+    s = slots.detach().float().clone().requires_grad_(True)
+    opt = torch.optim.Adam([s], lr=lr)
+    losses = []
+    with torch.enable_grad():
+        for _ in range(steps):
+            out = model.render_rays(
+                s, rays_o, rays_d, need_aux=False, input_c2w=input_c2w, slot_mask=slot_mask
+            )
+            loss = ((out.rgb.float() - target) ** 2).mean()
+            losses.append(loss.detach())
+            (s.grad,) = torch.autograd.grad(loss, [s])
+            opt.step()
+    return s.detach(), torch.stack([losses[0], losses[-1]])
 
 
 def refine_slots(
@@ -79,11 +138,7 @@ def refine_slots(
         )
     if slots.dim() != 3 or slots.shape[0] != 1:
         raise ValueError(f"refine_slots: slots must be [1, K, D], got {tuple(slots.shape)}")
-    if model.cfg.slot_centre.startswith("attention") and model.cfg.slot_locality is not None:
-        raise ValueError(
-            f"refine_slots: slot_centre={model.cfg.slot_centre!r} takes its centres from the "
-            "encoder's attention, not the slots; refinement needs 'anchored' or 'learned'"
-        )
+    _check_centres(model, "refine_slots")
     n = rays_o.shape[0]
     if rays_d.shape != rays_o.shape or target_rgb.shape != rays_o.shape or rays_o.shape[-1] != 3:
         raise ValueError(

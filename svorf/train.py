@@ -78,6 +78,7 @@ from svorf.model import SVORF
 from svorf.optim import WeightAverage, grad_norm, make_optimizer, param_groups
 from svorf.predict import ScenePrediction, default_eval, predict_scene
 from svorf.ray_sampling import ErrorMap
+from svorf.refine import refine_batch
 from svorf.run_records import (
     Budget,
     TrainingDiverged,
@@ -491,11 +492,14 @@ def _train_step(
         batch = _batch_rows(batch, run.lo, run.hi)
     batch = batch.to(run.device)
     with _batch_random(run):
-        # In train mode the model draws the packed-11 slot mask itself (global RNG).
-        out_r = model(
-            batch.images, batch.rays_o, batch.rays_d, perturb=True, input_c2w=batch.input_c2w
-        )
-        loss, parts = model.loss(out_r, batch.target_rgb)
+        if cfg.slot_distill is not None and step >= cfg.nvs_warmup:
+            out_r, loss, parts = _distill_forward(run, batch)
+        else:
+            # In train mode the model draws the packed-11 slot mask itself (global RNG).
+            out_r = model(
+                batch.images, batch.rays_o, batch.rays_d, perturb=True, input_c2w=batch.input_c2w
+            )
+            loss, parts = model.loss(out_r, batch.target_rgb)
     if run.error_map is not None:
         run.error_map.update(
             batch.scenes,
@@ -521,6 +525,42 @@ def _train_step(
         run.average.update(done)
     run.last_loss = float(loss.detach())
     return lr, parts, gnorm
+
+
+def _distill_forward(run: _Run, batch: RayBatch) -> tuple[Any, Tensor, dict[str, Tensor]]:
+    """The step's forward under ``TrainConfig.slot_distill``: the model's forward and loss,
+    plus ``weight`` times the mean squared distance of the encoder's slots to the same slots
+    refined on the step's own target rays (a fixed target). Adds the loss parts
+    "slot_distill" (the distance) and "refine_gain" (the refinement's MSE, first over last
+    step)."""
+    model = run.model
+    weight, steps, lr = run.train_cfg.slot_distill
+    slots, extra = model.encode_for_render(batch.images)
+    kw: dict[str, Any] = {"perturb": True, "input_c2w": batch.input_c2w, **extra}
+    if model.training and model.cfg.slot_mask_train > 0:
+        kw["slot_mask"] = model.sample_slot_mask(slots.shape[0], device=slots.device)
+    out_r = model.render_rays(slots, batch.rays_o, batch.rays_d, **kw)
+    loss, parts = model.loss(out_r, batch.target_rgb)
+    target, mse = refine_batch(
+        model,
+        slots,
+        batch.rays_o,
+        batch.rays_d,
+        batch.target_rgb,
+        steps=steps,
+        lr=lr,
+        input_c2w=batch.input_c2w,
+        slot_mask=kw.get("slot_mask"),
+    )
+    dist = torch.nn.functional.mse_loss(slots.float(), target)
+    loss = loss + weight * dist
+    parts = {
+        **parts,
+        "total": loss.detach(),
+        "slot_distill": dist.detach(),
+        "refine_gain": mse[0] / mse[1].clamp_min(1e-12),
+    }
+    return out_r, loss, parts
 
 
 def _batch_random(run: _Run) -> contextlib.AbstractContextManager:

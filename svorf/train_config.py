@@ -160,6 +160,15 @@ class TrainConfig:
     ``SVORF.encoder``, ``SVORF.slot_module``) as a multiple of ``lr`` at every step, warm-up
     and decay included; every other parameter keeps ``lr``. 1 = one rate for all (the
     paper). A lever (docs/notes/cpu_recipe.md)."""
+    slot_distill: tuple[float, int, float] | None = None
+    """``(weight, steps, lr)``: teach the slot inference what iterative inference finds.
+    From the end of ``nvs_warmup`` on, every step's slots are refined ``steps`` Adam steps
+    at ``lr`` on that step's own target rays (every network frozen, deterministic samples,
+    photometric MSE; ``svorf.refine.refine_batch``), and ``weight`` times the mean squared
+    distance of the encoder's slots to the refined ones (a fixed target) joins the loss.
+    The encoder is still all that infers slots at evaluation. It reads only the training
+    rays, so training stays unsupervised. None = off (the paper). Keyed only when set. A
+    lever (docs/notes/cpu_recipe.md)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
@@ -198,6 +207,15 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
             raise ValueError(f"TrainConfig.betas must be two numbers in [0, 1), got {self.betas}")
+        if self.slot_distill is not None:
+            sd = tuple(self.slot_distill)
+            w, n, rate = sd if len(sd) == 3 else (0, 0, 0)
+            if not (float(w) > 0 and int(n) == n and int(n) >= 1 and float(rate) > 0):
+                raise ValueError(
+                    "TrainConfig.slot_distill must be (weight > 0, refinement steps >= 1, "
+                    f"refinement lr > 0), got {self.slot_distill}"
+                )
+            object.__setattr__(self, "slot_distill", (float(w), int(n), float(rate)))
         object.__setattr__(self, "enc_lr_scale", float(self.enc_lr_scale))
         if not (math.isfinite(self.enc_lr_scale) and self.enc_lr_scale > 0.0):
             raise ValueError(
@@ -262,8 +280,8 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
         ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter``,
-        ``coarse_to_fine``, ``ema_decay``, ``enc_lr_scale`` and ``lr_decay_from`` only when set, so
-        that the keys of earlier runs stay valid."""
+        ``coarse_to_fine``, ``ema_decay``, ``enc_lr_scale``, ``lr_decay_from`` and
+        ``slot_distill`` only when set, so that the keys of earlier runs stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         if d["salient_fade"] is None:
@@ -278,6 +296,10 @@ class TrainConfig:
             del d["enc_lr_scale"]
         if not d["lr_decay_from"]:
             del d["lr_decay_from"]
+        if d["slot_distill"] is None:
+            del d["slot_distill"]
+        else:
+            d["slot_distill"] = list(d["slot_distill"])
         if d["input_view_from"] is None:
             del d["input_view_from"]
         if not d["pixel_jitter"]:

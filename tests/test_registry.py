@@ -89,7 +89,7 @@ def test_config_key_names_what_is_learned():
     assert config_key(m, t.replace(**changed)) == key
     every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
     # target_size, salient_fade, input_view_from, pixel_jitter, coarse_to_fine, ema_decay,
-    # enc_lr_scale and lr_decay_from are written only when set, so the keys of earlier runs
+    # enc_lr_scale, lr_decay_from and slot_distill are written only when set, so the keys of earlier runs
     # stay valid (the cpu recipe sets ema_decay)
     unset = {
         "target_size",
@@ -99,6 +99,7 @@ def test_config_key_names_what_is_learned():
         "coarse_to_fine",
         "enc_lr_scale",
         "lr_decay_from",
+        "slot_distill",
     }
     assert t.ema_decay == 0.999 and set(learning_fields(t)) == every - unset
     plain = t.replace(ema_decay=0.0)
@@ -110,6 +111,7 @@ def test_config_key_names_what_is_learned():
         "coarse_to_fine",
         "enc_lr_scale",
         "lr_decay_from",
+        "slot_distill",
     }
     assert config_key(m, finer) != key
     coarse = t.replace(coarse_to_fine=(2, 0.5))
@@ -122,6 +124,9 @@ def test_config_key_names_what_is_learned():
     late = t.replace(lr_decay="cosine", lr_decay_from=0.8)
     assert set(learning_fields(late)) == every - unset | {"lr_decay_from"}
     assert config_key(m, late) != config_key(m, t.replace(lr_decay="cosine")) != key
+    taught = t.replace(slot_distill=(1.0, 5, 1e-2))
+    assert set(learning_fields(taught)) == every - unset | {"slot_distill"}
+    assert config_key(m, taught) != key
     assert config_key(m, t.replace(seed=1)) != key
     assert config_key(m.replace(num_slots=7), t) != key
     assert config_key(*run_configs("cpu", "clevr567", recipe=False)) != key

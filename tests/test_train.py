@@ -542,3 +542,43 @@ def test_enc_lr_scale_steps_the_slot_inference_at_a_multiple_and_resumes(split, 
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="enc_lr_scale"):
             tcfg(enc_lr_scale=bad)
+
+
+def test_slot_distill_pulls_the_slots_to_their_refinement_and_resumes(split, tmp_path):
+    from svorf.refine import refine_batch
+
+    distill = {"slot_distill": (1.0, 2, 1e-2), "nvs_warmup": 2}
+    full, part, plain = tmp_path / "full", tmp_path / "part", tmp_path / "plain"
+    train(split, full, MCFG, tcfg(**distill), progress=False)
+    train(split, part, MCFG, tcfg(steps=3, **distill), progress=False)
+    train(split, part, MCFG, tcfg(**distill), resume=True, progress=False)
+    train(split, plain, MCFG, tcfg(nvs_warmup=2), progress=False)
+    a = torch.load(full / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(part / "checkpoint.pt", weights_only=True)["model"]
+    c = torch.load(plain / "checkpoint.pt", weights_only=True)["model"]
+    for k, v in a.items():
+        assert torch.equal(v, b[k]), k
+    assert not all(torch.equal(v, c[k]) for k, v in a.items())
+    log = _log(full)
+    # From the end of nvs_warmup on, the step logs the distance and the refinement's gain.
+    assert all("slot_distill" not in r["parts"] for r in log if r["step"] <= 2)
+    late = [r["parts"] for r in log if r["step"] > 2]
+    assert late and all(p["slot_distill"] >= 0 and p["refine_gain"] > 0 for p in late)
+    assert tcfg(**distill).to_dict()["slot_distill"] == [1.0, 2, 0.01]
+    assert "slot_distill" not in tcfg().to_dict()
+    assert TrainConfig.from_dict(tcfg(**distill).to_dict()) == tcfg(**distill)
+    for bad in ((0.0, 2, 1e-2), (1.0, 0, 1e-2), (1.0, 2, 0.0), (1.0, 2)):
+        with pytest.raises(ValueError, match="slot_distill"):
+            tcfg(slot_distill=bad)
+    # The refinement lowers the rays' error and leaves the parameters without gradients.
+    torch.manual_seed(0)
+    model = SVORF(MCFG)
+    img = torch.rand(2, 3, 32, 32)
+    o = torch.tensor([0.0, -12.0, 6.0]).expand(2, 48, 3)
+    d = torch.nn.functional.normalize(-o + 0.3 * torch.randn(2, 48, 3), dim=-1)
+    rgb = torch.rand(2, 48, 3)
+    slots = model.encode(img)
+    refined, mse = refine_batch(model, slots, o, d, rgb, steps=8, lr=3e-2)
+    assert refined.shape == slots.shape and not refined.requires_grad
+    assert float(mse[1]) < float(mse[0])
+    assert all(p.grad is None and p.requires_grad for p in model.parameters())
