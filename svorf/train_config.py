@@ -208,9 +208,11 @@ class TrainConfig:
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
             raise ValueError(f"TrainConfig.betas must be two numbers in [0, 1), got {self.betas}")
         if self.slot_distill is not None:
-            sd = tuple(self.slot_distill)
-            w, n, rate = sd if len(sd) == 3 else (0, 0, 0)
-            if not (float(w) > 0 and int(n) == n and int(n) >= 1 and float(rate) > 0):
+            try:
+                w, n, rate = (float(x) for x in self.slot_distill)
+            except (TypeError, ValueError):  # not three numbers
+                w = n = rate = 0.0
+            if not (w > 0 and n == int(n) and n >= 1 and rate > 0):
                 raise ValueError(
                     "TrainConfig.slot_distill must be (weight > 0, refinement steps >= 1, "
                     f"refinement lr > 0), got {self.slot_distill}"

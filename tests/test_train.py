@@ -567,7 +567,7 @@ def test_slot_distill_pulls_the_slots_to_their_refinement_and_resumes(split, tmp
     assert tcfg(**distill).to_dict()["slot_distill"] == [1.0, 2, 0.01]
     assert "slot_distill" not in tcfg().to_dict()
     assert TrainConfig.from_dict(tcfg(**distill).to_dict()) == tcfg(**distill)
-    for bad in ((0.0, 2, 1e-2), (1.0, 0, 1e-2), (1.0, 2, 0.0), (1.0, 2)):
+    for bad in ((0.0, 2, 1e-2), (1.0, 0, 1e-2), (1.0, 2, 0.0), (1.0, 2), (1.0, 2.5, 1e-2), "x"):
         with pytest.raises(ValueError, match="slot_distill"):
             tcfg(slot_distill=bad)
     # The refinement lowers the rays' error and leaves the parameters without gradients.
