@@ -40,6 +40,7 @@ import torch
 __all__ = [
     "ADAPTER_VERSION",
     "RECIPE_CONFIG_SOURCE",
+    "REFINE_LR_UNRECORDED",
     "VARIANTS",
     "VARIANT_LABELS",
     "Prediction",
@@ -52,6 +53,7 @@ __all__ = [
     "config_source",
     "connectivity_loss",
     "dataset_fingerprint",
+    "default_refine_lr",
     "diverging_run",
     "ground_truth",
     "init_preset",
@@ -61,6 +63,7 @@ __all__ = [
     "num_slots",
     "open_dataset",
     "predict_scene",
+    "refinement_of",
     "slot_masks",
     "svorf_preset",
     "train",
@@ -69,6 +72,31 @@ __all__ = [
     "volume_render",
     "write_synthetic_split",
 ]
+
+#: The slots' Adam learning rate of test-time refinement in reports that record
+#: ``refine_slots`` but no ``refine_lr``: every ``--refine-slots`` report written before the
+#: rate became an option (2026-12-05) refined at this rate.
+REFINE_LR_UNRECORDED = 3e-3
+
+
+def default_refine_lr() -> float:
+    """The slots' Adam learning rate of test-time refinement when none is given
+    (``svorf.refine.REFINE_LR``)."""
+    from svorf.refine import REFINE_LR
+
+    return float(REFINE_LR)
+
+
+def refinement_of(settings: dict[str, Any]) -> tuple[int, float | None]:
+    """``(steps, learning rate)`` of the test-time refinement a report's ``scale_settings``
+    record: ``(0, None)`` for the encoder's slots; a report without ``refine_lr`` refined at
+    :data:`REFINE_LR_UNRECORDED`."""
+    steps = int(settings.get("refine_slots") or 0)
+    if not steps:
+        return 0, None
+    lr = settings.get("refine_lr")
+    return steps, REFINE_LR_UNRECORDED if lr is None else float(lr)
+
 
 #: Bumped when anything here changes what a trained run or an evaluation means
 #: (it is part of the model cache key and of the evaluation cache key).
@@ -399,6 +427,7 @@ def predict_scene(
     slots_scene: int | None = None,
     input_view_only: bool = False,
     refine_steps: int = 0,
+    refine_lr: float | None = None,
 ) -> Prediction:
     """Render the views of scene ``index`` from ``input_view`` with ``model``.
 
@@ -417,6 +446,8 @@ def predict_scene(
         refine_steps: if > 0, the slots are refined this many steps on the pixels of the
             view they were encoded from before rendering (svorf's test-time slot
             refinement, ``svorf.refine``); 0 = the encoder's slots.
+        refine_lr: the slots' Adam learning rate of that refinement (None:
+            :func:`default_refine_lr`).
 
     Returns:
         The :class:`Prediction` (every view, or only the input view).
@@ -433,6 +464,8 @@ def predict_scene(
     kw: dict[str, Any] = {} if slots_scene is None else {"slots_scene": int(slots_scene)}
     if refine_steps:
         kw["refine_steps"] = int(refine_steps)
+        if refine_lr is not None:
+            kw["refine_lr"] = float(refine_lr)
     if input_view_only:
         dataset, input_view = _InputViewOnly(dataset, input_view), 0
     with torch.no_grad():

@@ -151,6 +151,14 @@ def _parser() -> argparse.ArgumentParser:
         "OUT/NAME-SCALE-refineN",
     )
     r.add_argument(
+        "--refine-lr",
+        type=float,
+        default=None,
+        metavar="LR",
+        help="table protocols: the slots' Adam learning rate of --refine-slots (default: "
+        "svorf's, 0.02; another rate adds -lrLR to the report folder's name)",
+    )
+    r.add_argument(
         "--backend",
         default="local",
         choices=("local", "ray"),
@@ -245,6 +253,7 @@ def _run(args: argparse.Namespace) -> int:
         ("--rows-from", args.rows_from),
         ("--spread-from", args.spread_from),
         ("--refine-slots", args.refine_slots or None),
+        ("--refine-lr", args.refine_lr),
     )
     for flag, value in table_only:
         if value is not None and args.name not in TABLE_PROTOCOLS:
@@ -271,6 +280,7 @@ def _run(args: argparse.Namespace) -> int:
         train_only=None if args.train_only is None else args.train_only.split(","),
         rows_from=_paths(args.rows_from),
         refine_slots=args.refine_slots,
+        refine_lr=args.refine_lr,
         spread_from=_paths(args.spread_from),
     )
     if args.show_config:

@@ -182,6 +182,7 @@ class Context:
         train_only: list[str] | tuple[str, ...] | None = None,
         rows_from: list[str] | tuple[str, ...] | None = None,
         refine_slots: int = 0,
+        refine_lr: float | None = None,
         spread_from: list[str] | tuple[str, ...] | None = None,
     ) -> None:
         if backend not in BACKENDS:
@@ -194,6 +195,17 @@ class Context:
             raise ValueError(f"--refine-slots must be a whole number >= 0, got {refine_slots!r}")
         #: Test-time slot refinement steps of every evaluation (0 = the encoder's slots).
         self.refine_slots = refine_slots
+        if refine_lr is not None:
+            if not refine_slots:
+                raise ValueError("--refine-lr sets the rate of --refine-slots N; pass that too")
+            if isinstance(refine_lr, bool) or not (
+                isinstance(refine_lr, (int, float)) and math.isfinite(refine_lr) and refine_lr > 0
+            ):
+                raise ValueError(f"--refine-lr must be a positive number, got {refine_lr!r}")
+        #: The slots' Adam learning rate of that refinement (None without refinement).
+        self.refine_lr: float | None = None
+        if refine_slots:
+            self.refine_lr = adapter.default_refine_lr() if refine_lr is None else float(refine_lr)
         #: Only reuse finished cached models; rows whose model is not trained stay null.
         self.no_train = bool(no_train)
         if train_only is not None:
@@ -255,6 +267,8 @@ class Context:
             None if only_datasets is None else tuple(dict.fromkeys(str(d) for d in only_datasets))
         )
         suffix = f"-refine{refine_slots}" if refine_slots else ""
+        if refine_slots and self.refine_lr != adapter.default_refine_lr():
+            suffix += f"-lr{self.refine_lr:g}"
         self.report_dir = self.out / f"{protocol}-{scale}{suffix}"
         spread = read_reports(tuple(spread_from or ()), "--spread-from")
         #: ``--spread-from`` report paths and their rows by seed (checked now: a report of
@@ -269,6 +283,7 @@ class Context:
                 "train_steps_override": self.train_steps,
                 "train_minutes": self.train_minutes,
                 "refine_slots": refine_slots,
+                "refine_lr": self.refine_lr,
             },
         )
         self.timers = {"data": 0.0, "training": 0.0, "evaluation": 0.0}
@@ -548,8 +563,19 @@ class Context:
     def eval_dir(self, rec: ModelRecord, test: DatasetInfo) -> Path:
         """The evaluation cache folder of ``rec`` on ``test`` (with ``--refine-slots``
         its own: only then, so that the caches of earlier runs keep their keys)."""
-        extra = {"refine_slots": self.refine_slots} if self.refine_slots else {}
-        return self._eval_dir(rec.key, test, extra)
+        return self._eval_dir(rec.key, test, self.refine_context())
+
+    def refine_context(self) -> dict[str, Any]:
+        """What test-time refinement adds to the evaluation cache key and the row context:
+        nothing for the encoder's slots, the steps, and the rate where it is not
+        :data:`benchmark.adapter.REFINE_LR_UNRECORDED` (so that the caches and rows of
+        refinements at that rate, written before it was recorded, keep their keys)."""
+        if not self.refine_slots:
+            return {}
+        extra: dict[str, Any] = {"refine_slots": self.refine_slots}
+        if self.refine_lr != adapter.REFINE_LR_UNRECORDED:
+            extra["refine_lr"] = self.refine_lr
+        return extra
 
     def evaluation(self, rec: ModelRecord, test: DatasetInfo) -> EvalResult:
         """Score ``rec`` on ``test`` (cached on disk; timed under ``evaluation``)."""
@@ -569,6 +595,7 @@ class Context:
             lpips_weights=self.lpips_weights,
             progress=self.progress,
             refine_steps=self.refine_slots,
+            refine_lr=self.refine_lr,
         )
         self.timers["evaluation"] += time.perf_counter() - t
         return res
@@ -622,6 +649,7 @@ class Context:
             "train_only": None if self.train_only is None else list(self.train_only),
             "backend": self.backend,
             "refine_slots": self.refine_slots,
+            "refine_lr": self.refine_lr,
         }
         return rep
 

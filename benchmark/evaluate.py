@@ -272,6 +272,7 @@ def evaluate_model(
     lpips_weights: str | None = None,
     progress: Callable[[int, int], None] | None = None,
     refine_steps: int = 0,
+    refine_lr: float | None = None,
 ) -> EvalResult:
     """Score ``model`` on every scene of ``dataset`` (segmentation, image and depth metrics).
 
@@ -290,6 +291,8 @@ def evaluate_model(
         refine_steps: test-time slot refinement on the input view's pixels before every
             prediction, the control's included (``benchmark run --refine-slots``;
             :func:`benchmark.adapter.predict_scene`); 0 = the encoder's slots.
+        refine_lr: the slots' Adam learning rate of that refinement (None: svorf's default,
+            :func:`benchmark.adapter.default_refine_lr`).
 
     Returns:
         The aggregated :class:`EvalResult`; ``sample`` holds scene 0's arrays.
@@ -300,7 +303,9 @@ def evaluate_model(
     details: dict[str, str] = {}
     sample = None
     idx = _scene_indices(dataset, max_scenes)
-    refine = {"refine_steps": int(refine_steps)} if refine_steps else {}
+    refine: dict[str, Any] = {}
+    if refine_steps:
+        refine = {"refine_steps": int(refine_steps), "refine_lr": refine_lr}
     if len(idx) < 2:
         reasons.update(dict.fromkeys(CONTROL_KEYS, CONTROL_REASON))
     for j, i in enumerate(idx):

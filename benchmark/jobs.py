@@ -86,11 +86,12 @@ def evaluate_run(
     lpips_weights: str | None,
     progress: bool,
     refine_steps: int = 0,
+    refine_lr: float | None = None,
 ) -> EvalResult:
     """Score the model in ``run_dir`` on ``test`` and write the result to ``out_dir``.
 
     The unit of work of :meth:`Context.evaluation` and of a Ray evaluation task;
-    ``refine_steps`` as :func:`benchmark.evaluate.evaluate_model`.
+    ``refine_steps`` and ``refine_lr`` as :func:`benchmark.evaluate.evaluate_model`.
     """
     ds = adapter.open_dataset(test.path, image_size=image_size)
     model = adapter.load_model(run_dir, device=device)
@@ -112,6 +113,7 @@ def evaluate_run(
             lpips_weights=lpips_weights,
             progress=(lambda i, n: bar.update(1)) if bar is not None else None,
             refine_steps=refine_steps,
+            refine_lr=refine_lr,
         )
     finally:
         if bar is not None:

@@ -53,17 +53,18 @@ def _find_reports(root: Path) -> list[Path]:
 
 def _budget(report: dict[str, Any]) -> str | None:
     """A measured row's training budget per model: ``"60 min"``, ``"2000 steps"`` or None,
-    with ``" + refine 50"`` where the evaluation refined the slots (``--refine-slots 50``),
-    so that refined rows never replace the encoder's own."""
+    with ``" + refine 50 at lr 0.02"`` where the evaluation refined the slots
+    (``--refine-slots 50 --refine-lr 0.02``), so that refined rows never replace the
+    encoder's own, nor rows refined at another rate."""
     settings = report.get("scale_settings") or {}
     minutes, steps = settings.get("train_minutes"), settings.get("train_steps_override")
     if minutes is not None:
         budget: str | None = f"{minutes:g} min"
     else:
         budget = None if steps is None else f"{steps} steps"
-    refine = settings.get("refine_slots") or 0
+    refine, lr = adapter.refinement_of(settings)
     if refine:
-        return f"{budget or 'default'} + refine {refine}"
+        return f"{budget or 'default'} + refine {refine} at lr {lr:g}"
     return budget
 
 

@@ -232,7 +232,7 @@ def orderings_summary(section: list[dict[str, Any]]) -> str:
 
 
 #: The settings two reports must share for their rows to count as two seeds of one table.
-SPREAD_SETTINGS = ("train_steps_override", "train_minutes", "refine_slots")
+SPREAD_SETTINGS = ("train_steps_override", "train_minutes", "refine_slots", "refine_lr")
 
 
 def other_seed_rows(
@@ -279,11 +279,15 @@ def other_seed_rows(
             mine, their = settings.get(key), theirs.get(key)
             if key == "refine_slots":
                 mine, their = mine or 0, their or 0
+            if key == "refine_lr":  # a report without it refined at the rate of its day
+                from benchmark.adapter import refinement_of
+
+                their = refinement_of(theirs)[1]
             if mine != their:
                 raise ValueError(
                     f"{where}: {key} {their!r} where this run has {mine!r}; its rows would "
                     "compare budgets, not seeds (give a report with the same --steps, "
-                    "--train-minutes and --refine-slots)"
+                    "--train-minutes, --refine-slots and --refine-lr)"
                 )
         out[other] = [r for r in rep.get("rows", []) if r.get("source") != "paper"]
     return out

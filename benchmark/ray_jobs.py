@@ -202,6 +202,7 @@ def run_jobs_on_ray(ctx: Any, measured: list[Any]) -> dict[str, int]:
                     "lpips_weights": ctx.lpips_weights,
                     "progress": False,
                     "refine_steps": ctx.refine_slots,
+                    "refine_lr": ctx.refine_lr,
                 }
                 opts = {"num_cpus": threads, "num_gpus": 1 if use_gpu else 0}
                 refs[task.options(**opts).remote(threads, (rec.run_dir, test, d), kwargs)] = (

@@ -158,8 +158,8 @@ def run_table_protocol(
         # that splits generated on different CPUs match; earlier reports used raw bytes.
         "fingerprint": "rounded-1e-6",
     }
-    if ctx.refine_slots:  # only when on: rows scored from the encoder's slots keep their context
-        store_ctx["refine_slots"] = ctx.refine_slots
+    # Only when on: rows scored from the encoder's slots keep their context.
+    store_ctx.update(ctx.refine_context())
     store = RowStore(ctx.report_dir / "rows", store_ctx)
     # The row context goes into the report, so that a later run can take its rows
     # (--rows-from) only where they are the numbers it would compute.
@@ -351,8 +351,9 @@ def run_table_protocol(
         report["figures"] = figures(ctx, rows, state)
     if ctx.refine_slots:
         ctx.notes.append(
-            f"Test-time slot refinement (--refine-slots {ctx.refine_slots}): before every "
-            f"prediction the encoder's slots were refined by {ctx.refine_slots} Adam steps "
+            f"Test-time slot refinement (--refine-slots {ctx.refine_slots} --refine-lr "
+            f"{ctx.refine_lr:g}): before every prediction the encoder's slots were refined by "
+            f"{ctx.refine_slots} Adam steps at learning rate {ctx.refine_lr:g} "
             "(every network frozen) to reproduce the input view's own pixels; no other view, "
             "mask or depth is read. The paper's evaluation uses the encoder's slots alone "
             "(--refine-slots 0), so these rows are not comparable with its numbers."

@@ -6,7 +6,8 @@ Usage::
                 [--steps N] [--resume] [--seed S] [--eval-data DIR] [--image-size N]
                 [--device auto|cpu|cuda] [--max-scenes N] [--threads N] [--no-progress]
     svorf render RUN --data DIR --scene I [--out DIR] [--force] [--allow-preset-mismatch]
-                 [--input-view V] [--chunk N] [--refine-steps N] [--device auto|cpu|cuda]
+                 [--input-view V] [--chunk N] [--refine-steps N [--refine-lr LR]]
+                 [--device auto|cpu|cuda]
     svorf info --scale paper [--preset clevr567] [--image-size N]
     svorf edit RUN --data DIR --scene I [--move-object K --offset DX DY]
                [--swap-background DONOR] [--out DIR] [--force]   (svorf.edit_cli)
@@ -53,6 +54,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from scenefmt.cli_util import RUNTIME, USAGE, OneLineParser, error_line, fail
+
+#: ``svorf.refine.REFINE_LR`` for the help text, without importing torch to print it
+#: (tests/test_refine.py checks that the two agree).
+REFINE_LR_HELP = 2e-2
 
 if TYPE_CHECKING:
     from scenefmt import Manifest
@@ -150,6 +155,13 @@ def _parser() -> argparse.ArgumentParser:
         metavar="N",
         help="test-time slot refinement: N Adam steps on the slots (networks frozen) to "
         "reproduce the input view's pixels before rendering (default: 0, the encoder's slots)",
+    )
+    r.add_argument(
+        "--refine-lr",
+        type=float,
+        default=None,
+        metavar="LR",
+        help=f"the slots' Adam learning rate of --refine-steps (default: {REFINE_LR_HELP:g})",
     )
     r.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
 
@@ -393,6 +405,13 @@ def _cmd_render(a: argparse.Namespace) -> int:
         raise _UsageError(f"--chunk must be >= 1, got {a.chunk}")
     if a.refine_steps < 0:
         raise _UsageError(f"--refine-steps must be >= 0, got {a.refine_steps}")
+    from svorf.refine import REFINE_LR
+
+    refine_lr = REFINE_LR if a.refine_lr is None else a.refine_lr
+    if not (math.isfinite(refine_lr) and refine_lr > 0):
+        raise _UsageError(f"--refine-lr must be a positive number, got {a.refine_lr}")
+    if a.refine_lr is not None and not a.refine_steps:
+        raise _UsageError("--refine-lr sets the rate of --refine-steps N; pass that too")
     meta = _read_manifest(a.data, required=False)
     device = resolve_device(a.device)
     model, info = load_run(a.run, device=device)
@@ -419,7 +438,13 @@ def _cmd_render(a: argparse.Namespace) -> int:
     pos = 0
     try:
         pred = predict_scene(
-            model, ds, pos, input_view=a.input_view, chunk=a.chunk, refine_steps=a.refine_steps
+            model,
+            ds,
+            pos,
+            input_view=a.input_view,
+            chunk=a.chunk,
+            refine_steps=a.refine_steps,
+            refine_lr=refine_lr,
         )
     except ValueError as err:  # a model whose slots cannot be refined
         raise _UsageError(str(err)) from None

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
-from svorf.refine import refine_slots
+from svorf.refine import REFINE_LR, refine_slots
 
 __all__ = ["ScenePrediction", "default_eval", "predict_scene"]
 
@@ -59,6 +59,7 @@ def predict_scene(
     chunk: int = 4096,
     slots_scene: int | None = None,
     refine_steps: int = 0,
+    refine_lr: float = REFINE_LR,
 ) -> ScenePrediction:
     """Encode one view of a scene and render every view at the dataset's resolution.
 
@@ -77,6 +78,7 @@ def predict_scene(
             pixels of the view they were encoded from before rendering
             (:func:`svorf.refine.refine_slots`; 0 = the encoder's slots, the paper's
             evaluation).
+        refine_lr: the slots' Adam learning rate of that refinement.
 
     Returns:
         The :class:`ScenePrediction` of every view (V = ``dataset.n_views``).
@@ -102,6 +104,7 @@ def predict_scene(
                 src.rays_d[input_view].reshape(-1, 3),
                 src.images[input_view].permute(1, 2, 0).reshape(-1, 3),
                 steps=refine_steps,
+                lr=refine_lr,
                 input_c2w=src.cam_to_world[input_view : input_view + 1].to(device),
                 seed=int(src.scene),
             )

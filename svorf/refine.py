@@ -32,8 +32,11 @@ from svorf.model import SVORF
 
 __all__ = ["REFINE_LR", "REFINE_RAYS", "refine_batch", "refine_slots"]
 
-#: Adam learning rate of the slots (slot vectors are O(1) per component).
-REFINE_LR = 3e-3
+#: Adam learning rate of the slots (slot vectors are O(1) per component). Chosen on training
+#: scenes of a cpu-scale model (docs/notes/cpu_recipe.md, "The refinement's own learning
+#: rate"): at 50 steps 2e-2 gave about twice the ARI gain of 3e-3, the rate before
+#: 2026-12-05 (reports of ``--refine-slots`` from before then refined at 3e-3).
+REFINE_LR = 2e-2
 #: Random pixels of the fitted view(s) per refinement step.
 REFINE_RAYS = 1024
 

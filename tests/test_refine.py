@@ -12,6 +12,7 @@ trained model's segmentation is measured, not tested: ``python -m benchmark.tool
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -109,6 +110,13 @@ def test_prediction_with_refinement(toy):
     # The control's slots are refined on their own scene's view, then moved.
     ctrl = adapter.predict_scene(model, ds, 0, slots_scene=1, input_view_only=True, refine_steps=3)
     assert ctrl.labels.shape == (1, *base.labels.shape[1:])
+    # The rate reaches the refinement: None is svorf's default, another rate another render.
+    same = adapter.predict_scene(
+        model, ds, 0, refine_steps=3, refine_lr=adapter.default_refine_lr()
+    )
+    torch.testing.assert_close(ref.rgb, same.rgb)
+    slow = adapter.predict_scene(model, ds, 0, refine_steps=3, refine_lr=1e-4)
+    assert not torch.allclose(slow.rgb, ref.rgb)
 
 
 def test_the_diagnostic_scores_both_slot_sets(toy):
@@ -136,6 +144,50 @@ def test_context_keys_and_folders(tmp_path):
     assert on.base_report()["scale_settings"]["refine_slots"] == 20
     with pytest.raises(ValueError, match="--refine-slots must be a whole number >= 0"):
         Context("segmentation", "smoke", tmp_path, tmp_path, progress=False, refine_slots=-1)
+    # The rate: svorf's by default and recorded; another rate has its own folder and cache.
+    default = adapter.default_refine_lr()
+    assert off.refine_lr is None and on.refine_lr == default
+    assert on.base_report()["scale_settings"]["refine_lr"] == default
+    other = Context(
+        "segmentation", "smoke", tmp_path, tmp_path, progress=False, refine_slots=20, refine_lr=0.5
+    )
+    assert other.report_dir.name == "segmentation-smoke-refine20-lr0.5"
+    assert other.eval_dir(rec, test) not in (on.eval_dir(rec, test), off.eval_dir(rec, test))
+    # At the rate every earlier refined report used, the cache key is the one they wrote.
+    old = Context(
+        "segmentation",
+        "smoke",
+        tmp_path,
+        tmp_path,
+        progress=False,
+        refine_slots=20,
+        refine_lr=adapter.REFINE_LR_UNRECORDED,
+    )
+    assert old.refine_context() == {"refine_slots": 20}
+    assert old.eval_dir(rec, test) == on._eval_dir("run", test, {"refine_slots": 20})
+    for bad, needle in ((0.0, "positive number"), (float("nan"), "positive number")):
+        with pytest.raises(ValueError, match=needle):
+            Context(
+                "segmentation",
+                "smoke",
+                tmp_path,
+                tmp_path,
+                progress=False,
+                refine_slots=2,
+                refine_lr=bad,
+            )
+    with pytest.raises(ValueError, match="pass that too"):
+        Context("segmentation", "smoke", tmp_path, tmp_path, progress=False, refine_lr=0.01)
+
+
+def test_the_help_texts_name_the_default_rate():
+    from svorf.cli import REFINE_LR_HELP
+    from svorf.refine import REFINE_LR
+
+    assert REFINE_LR_HELP == REFINE_LR == adapter.default_refine_lr()
+    import benchmark.cli
+
+    assert f"svorf's, {REFINE_LR:g}" in Path(benchmark.cli.__file__).read_text()
 
 
 def test_cli_refuses_refinement_outside_the_tables(tmp_path, capsys):
@@ -143,6 +195,11 @@ def test_cli_refuses_refinement_outside_the_tables(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1
     assert "--refine-slots applies to the table protocols" in err
+    code = benchmark_main(
+        ["run", "segmentation", "--refine-lr", "0.01", "--out", str(tmp_path), "--no-train"]
+    )
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "pass that too" in err
 
 
 def test_module_example_runs():
@@ -164,9 +221,17 @@ def test_leaderboard_keeps_refined_rows_apart(tmp_path):
     for rep in (plain, refined):
         rep["scale_settings"]["train_steps_override"] = 25000
     refined["scale_settings"]["refine_slots"] = 50
+    faster = _good_report(created="2025-03-01T00:00:00Z")
+    faster["scale_settings"].update(train_steps_override=25000, refine_slots=50, refine_lr=0.02)
     write_report(tmp_path / "a" / "report.json", plain)
     write_report(tmp_path / "b" / "report.json", refined)
+    write_report(tmp_path / "c" / "report.json", faster)
     board = merge_reports(tmp_path)
     budgets = sorted(str(e["budget"]) for e in board["entries"] if e["source"] == "measured")
-    assert budgets == ["25000 steps", "25000 steps + refine 50"]
-    assert "smoke seed 0, 25000 steps + refine 50" in format_leaderboard(board)
+    # A refined report without a rate (written before it was recorded) refined at 3e-3.
+    assert budgets == [
+        "25000 steps",
+        "25000 steps + refine 50 at lr 0.003",
+        "25000 steps + refine 50 at lr 0.02",
+    ]
+    assert "smoke seed 0, 25000 steps + refine 50 at lr 0.02" in format_leaderboard(board)

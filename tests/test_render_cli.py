@@ -118,3 +118,10 @@ def test_render_with_slot_refinement(run, tmp_path, capsys):
     assert _render(run, test, "--refine-steps", "-1", "--out", str(tmp_path / "x")) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--refine-steps must be >= 0" in err
+    for args, needle in (
+        (("--refine-steps", "2", "--refine-lr", "0"), "--refine-lr must be a positive number"),
+        (("--refine-lr", "0.01"), "pass that too"),
+    ):
+        assert _render(run, test, *args, "--out", str(tmp_path / "y")) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and needle in err

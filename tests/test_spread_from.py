@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from benchmark import adapter
 from benchmark.cli import main as cli_main
 from benchmark.orderings import Ordering, check_orderings, orderings_summary, other_seed_rows
 from benchmark.schema import validate_report
@@ -96,7 +97,7 @@ def _rep(protocol="ablation", scale="cpu", seed=1, steps=25000, minutes=None, re
     }
 
 
-MINE = {"train_steps_override": 25000, "train_minutes": None, "refine_slots": 0}
+MINE = {"train_steps_override": 25000, "train_minutes": None, "refine_slots": 0, "refine_lr": None}
 
 
 def _other(*reports):
@@ -112,6 +113,15 @@ def test_other_seed_rows_keeps_measured_and_baseline_rows_by_seed():
     old = _rep()
     del old["scale_settings"]["refine_slots"]
     assert list(_other(old)) == [1]
+
+
+def test_a_refined_report_without_a_rate_refined_at_the_rate_of_its_day():
+    refined = {**MINE, "refine_slots": 50, "refine_lr": adapter.REFINE_LR_UNRECORDED}
+    pairs = [("r0.json", _rep(refine=50))]
+    kw = {"protocol": "ablation", "scale": "cpu", "seed": 0}
+    assert list(other_seed_rows(pairs, settings=refined, **kw)) == [1]
+    with pytest.raises(ValueError, match="refine_lr 0.003 where this run has 0.02"):
+        other_seed_rows(pairs, settings={**refined, "refine_lr": 0.02}, **kw)
 
 
 @pytest.mark.parametrize(

@@ -223,6 +223,11 @@ def _trained_run_case(out: Path, data: Path, monkeypatch) -> None:
     for r in render:
         assert r["metrics"]["psnr"] is not None and r["metrics"]["psnr"] > 0
         assert r["metrics"]["nv_ari"] is not None
+    # Trained weights scored against the truth: test-time refinement is a point too, and it
+    # changes the render (init weights on analytic scenes have no such point: below).
+    refined = [r for r in render if r["knob"] == "refine_slots"]
+    assert [r["refine_steps"] for r in refined] == [20, 50]
+    assert all(r["metrics"]["rgb_mean_err"] > 0 for r in refined)
     assert rep["scale_settings"]["tradeoff"]["render"]["ground_truth"]
     assert {"render: trained weights, psnr", "render: trained weights, nv_ari"} <= set(
         rep["curves"]

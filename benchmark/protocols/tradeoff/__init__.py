@@ -40,7 +40,9 @@ not dataset scenes, so no dataset is needed; the report says so. These rows are 
   ``predict_scene``: encode, ``render_chunked``) over samples per ray, ``clip_to_box`` flipped,
   ``clip_floor_front`` flipped (where the floor is clipped), ``eval_early_stop`` and
   ``eval_fine_min_weight`` (the evaluation-only knobs of ``ModelConfig``), on the trained
-  weights when there are some. Scored with
+  weights when there are some; with trained weights scored against the truth, test-time
+  slot refinement too (``refine_slots``, 20 and 50 steps: the evaluation's best lever on
+  ARI, at its price in time). Scored with
   :mod:`benchmark.evaluate`'s functions against the ground truth of the clevr567 test split
   (PSNR on the novel views, NV-ARI, NV-FG-ARI, FG-ARI) when the split is on disk and the
   weights are trained; otherwise PSNR / NV-ARI are null with the reason and the curve's

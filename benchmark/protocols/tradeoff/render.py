@@ -37,6 +37,7 @@ __all__ = [
     "EARLY_STOPS",
     "EVAL_COMBINED",
     "FINE_MIN_WEIGHTS",
+    "REFINE_STEPS",
     "RenderPoint",
     "RenderScenes",
     "clip_flip",
@@ -51,6 +52,8 @@ __all__ = [
 EARLY_STOPS = (1e-3, 1e-2, 5e-2, 0.2)
 #: Thresholds swept for ``ModelConfig.eval_fine_min_weight`` (coarse bin weight).
 FINE_MIN_WEIGHTS = (0.01, 0.05, 0.1, 0.3)
+#: Test-time slot refinement steps swept on trained weights (at svorf's default rate).
+REFINE_STEPS = (20, 50)
 #: The combination point of the render curve.
 EVAL_COMBINED = {"eval_early_stop": 1e-2, "eval_fine_min_weight": 0.05}
 _RENDER_QUALITY = ("psnr", "nv_ari", "nv_fg_ari", "fg_ari")
@@ -67,6 +70,8 @@ class RenderPoint:
     reference: bool = False
     exact: bool = False
     """The default's config, timed as a point of its own (error 0 by construction)."""
+    refine_steps: int = 0
+    """Test-time slot refinement steps before rendering (0: the encoder's slots)."""
     times: list[float] = field(default_factory=list)
 
     @property
@@ -76,11 +81,12 @@ class RenderPoint:
         return f"{self.knob}={self.setting}"
 
 
-def render_points(cfg: Any) -> list[RenderPoint]:
+def render_points(cfg: Any, refine: bool = False) -> list[RenderPoint]:
     """The shipped default (``cfg``, eval knobs off) and every render-curve point: samples
     per ray, ``clip_to_box`` flipped, ``clip_floor_front`` flipped (where the floor is
-    clipped), ``eval_early_stop``, ``eval_fine_min_weight`` (with fine samples only) and
-    :data:`EVAL_COMBINED`."""
+    clipped), ``eval_early_stop``, ``eval_fine_min_weight`` (with fine samples only),
+    :data:`EVAL_COMBINED` and, with ``refine`` (trained weights), test-time slot refinement
+    at :data:`REFINE_STEPS`."""
     nc, nf = int(cfg.n_coarse), int(cfg.n_fine)
     pts = [
         RenderPoint(
@@ -107,6 +113,9 @@ def render_points(cfg: Any) -> list[RenderPoint]:
                 RenderPoint("eval_fine_min_weight", fmt_value(v), {"eval_fine_min_weight": v})
             )
         pts.append(RenderPoint("combined", knobs_text(EVAL_COMBINED), dict(EVAL_COMBINED)))
+    if refine:
+        for n in REFINE_STEPS:
+            pts.append(RenderPoint("refine_slots", str(n), {}, refine_steps=n))
     return pts
 
 
@@ -227,15 +236,20 @@ def measure_render(
     from benchmark.tools import speedbench
 
     shipped = ws.shipped if ws.shipped is not None else _shipped(ctx)
-    points = render_points(shipped)
     scenes = _render_scenes(ctx, ws, settings, tmp)
+    # Refinement only where it can be scored: trained weights against the ground truth.
+    points = render_points(shipped, refine=scenes.ground_truth)
     models = [_build(ws, shipped.replace(**p.overrides)).to(ctx.device) for p in points]
     preds: list[list[Any]] = [[] for _ in points]
     for m in models:  # warm-up (allocator, caches), untimed
         adapter.predict_scene(m, scenes.dataset, scenes.scenes[0])
 
     def render(j: int) -> None:
-        out = [adapter.predict_scene(models[j], scenes.dataset, i) for i in scenes.scenes]
+        n = points[j].refine_steps
+        out = [
+            adapter.predict_scene(models[j], scenes.dataset, i, refine_steps=n)
+            for i in scenes.scenes
+        ]
         if not preds[j]:  # the first repeat's renders are the ones scored
             preds[j] = out
 
@@ -304,6 +318,7 @@ def measure_render(
             "knob": p.knob,
             "setting": p.setting,
             "overrides": p.overrides,
+            "refine_steps": p.refine_steps,
             "weights": ws.name,
             "reference": p.reference,
             "exact_by_construction": p.exact,
@@ -393,7 +408,10 @@ def render_note(
         f"{truth}; rgb/depth/label differences are against the default render. Knobs: "
         "samples per ray, clip_to_box, clip_floor_front (where the floor is clipped), "
         "eval_early_stop (transmittance threshold), "
-        "eval_fine_min_weight (fine samples only in coarse bins of at least this weight)."
+        "eval_fine_min_weight (fine samples only in coarse bins of at least this weight), "
+        "and on trained weights test-time slot refinement (refine_slots: Adam steps on the "
+        "slots, networks frozen, fitted to the input view's pixels, at svorf's default rate; "
+        "its time is in the time per view)."
     )
 
 
