@@ -1,12 +1,22 @@
-import json, glob, sys, re
+"""Print the refinement grid's JSONs as a table: python table.py train|test."""
+
+import glob
+import json
+import re
+import sys
+from pathlib import Path
+
 split = sys.argv[1] if len(sys.argv) > 1 else "train"
+here = Path(__file__).parent
 rows = []
-for f in sorted(glob.glob(f"/work/runs/rfc/{split}-s*-*.json")):
-    d = json.load(open(f))
+for f in sorted(glob.glob(str(here / f"{split}-s*-*.json"))):
+    d = json.loads(Path(f).read_text())
     s = re.search(r"-s(\d)-", f).group(1)
     rows.append((int(s), d["refine"]["steps"], d["refine"]["lr"], d))
 rows.sort(key=lambda r: (r[0], r[1], r[2]))
-print(f"{'seed':4} {'steps':>5} {'lr':>6} | {'ARI':>5} {'FG':>5} {'NV':>5} {'NVFG':>5} {'PSNRin':>6} {'PSNRnv':>6} | enc ARI FG NV")
 for s, st, lr, d in rows:
-    e, r = d["encoded"], d["refined"]; dd = d["delta"]
-    print(f"{s:4} {st:5} {lr:6g} | {dd['ari']:+5.1f} {dd['fg_ari']:+5.1f} {dd['nv_ari']:+5.1f} {dd['nv_fg_ari']:+5.1f} {dd['psnr']:+6.2f} {dd['nv_psnr']:+6.2f} | {e['ari']:.1f} {e['fg_ari']:.1f} {e['nv_ari']:.1f} -> {r['ari']:.1f} {r['fg_ari']:.1f} {r['nv_ari']:.1f}")
+    dd = d["delta"]
+    print(
+        f"seed {s} steps {st:3} lr {lr:<6g} ARI {dd['ari']:+5.1f} FG-ARI {dd['fg_ari']:+5.1f} "
+        f"NV-ARI {dd['nv_ari']:+5.1f} PSNR in/novel {dd['psnr']:+.2f} / {dd['nv_psnr']:+.2f}"
+    )
