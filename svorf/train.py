@@ -488,12 +488,18 @@ def _train_step(
     scenes = smp.sample_scenes(cfg.batch_scenes, run.gen)
     stride = cfg.ray_stride(progress)
     batch = smp.sample(scenes, run.gen, share, with_input, cfg.pixel_jitter, stride)
+    iterative = cfg.refine_train is not None and step >= cfg.nvs_warmup
+    # The input views' pixels of the refinement, drawn for the whole global batch.
+    inp = _input_pixels(smp.dataset, batch, cfg.refine_train[2], run.gen) if iterative else ()
     if run.dctx is not None:
         batch = _batch_rows(batch, run.lo, run.hi)
+        inp = tuple(x[run.lo : run.hi] for x in inp)
     batch = batch.to(run.device)
     with _batch_random(run):
         if cfg.slot_distill is not None and step >= cfg.nvs_warmup:
             out_r, loss, parts = _distill_forward(run, batch)
+        elif iterative:
+            out_r, loss, parts = _iterative_forward(run, batch, inp)
         else:
             # In train mode the model draws the packed-11 slot mask itself (global RNG).
             out_r = model(
@@ -561,6 +567,49 @@ def _distill_forward(run: _Run, batch: RayBatch) -> tuple[Any, Tensor, dict[str,
         "refine_gain": mse[0] / mse[1].clamp_min(1e-12),
     }
     return out_r, loss, parts
+
+
+def _input_pixels(
+    dataset: MultiViewDataset, batch: RayBatch, rays: int, generator: torch.Generator
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(rays_o, rays_d, rgb)`` [B, rays, 3] through uniformly drawn pixels of each batch
+    scene's input view, at the dataset's resolution (``TrainConfig.refine_train``)."""
+    (h, w), v_all = dataset.image_hw, dataset.n_views
+    pix = torch.randint(0, h * w, (len(batch.scenes), rays), generator=generator)
+    out: tuple[list[Tensor], list[Tensor], list[Tensor]] = ([], [], [])
+    for i, (s, iv) in enumerate(zip(batch.scenes.tolist(), batch.input_view.tolist())):
+        o, d = dataset.rays(s, torch.full((rays,), iv, dtype=torch.long), pix[i])
+        out[0].append(o)
+        out[1].append(d)
+        out[2].append(dataset._rgb[s].reshape(v_all, h * w, 3)[iv, pix[i]].float() / 255.0)
+    return tuple(torch.stack(x) for x in out)  # type: ignore[return-value]
+
+
+def _iterative_forward(
+    run: _Run, batch: RayBatch, inp: tuple[Tensor, ...]
+) -> tuple[Any, Tensor, dict[str, Tensor]]:
+    """The step's forward under ``TrainConfig.refine_train``: the encoder's slots refined on
+    the input views' pixels ``inp`` (networks frozen), the target rays rendered from the
+    refined slots, the encoder's gradient through the refinement as the identity. Adds the
+    loss part "refine_gain" (the refinement's MSE on those pixels, first over last step)."""
+    model = run.model
+    steps, lr, _ = run.train_cfg.refine_train
+    slots, extra = model.encode_for_render(batch.images)
+    slot_mask = None
+    if model.training and model.cfg.slot_mask_train > 0:
+        slot_mask = model.sample_slot_mask(slots.shape[0], device=slots.device)
+    o, d, rgb = (x.to(run.device) for x in inp)
+    refined, mse = refine_batch(
+        model, slots, o, d, rgb, steps=steps, lr=lr, input_c2w=batch.input_c2w,
+        slot_mask=slot_mask,
+    )  # fmt: skip
+    slots = slots + (refined.to(slots.dtype) - slots.detach())
+    out_r = model.render_rays(
+        slots, batch.rays_o, batch.rays_d, perturb=True, input_c2w=batch.input_c2w,
+        slot_mask=slot_mask, **extra,
+    )  # fmt: skip
+    loss, parts = model.loss(out_r, batch.target_rgb)
+    return out_r, loss, {**parts, "refine_gain": mse[0] / mse[1].clamp_min(1e-12)}
 
 
 def _batch_random(run: _Run) -> contextlib.AbstractContextManager:

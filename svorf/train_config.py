@@ -169,6 +169,17 @@ class TrainConfig:
     The encoder is still all that infers slots at evaluation. It reads only the training
     rays, so training stays unsupervised. None = off (the paper). Keyed only when set. A
     lever (docs/notes/cpu_recipe.md)."""
+    refine_train: tuple[int, float, int] | None = None
+    """``(steps, lr, rays)``: iterative inference inside training. From the end of
+    ``nvs_warmup`` on, every step's slots are refined ``steps`` Adam steps at ``lr`` on
+    ``rays`` random pixels of each scene's *input* view (every network frozen,
+    deterministic samples, photometric MSE; ``svorf.refine.refine_batch``), as the
+    evaluation's ``--refine-slots`` refines them, and the step's target rays are rendered
+    from the refined slots. The encoder's gradient passes the refinement as the identity
+    (first order), so the fields learn to decode refined slots and the encoder learns
+    where refinement starts from. Meant to be evaluated with refinement. It reads only
+    the input view's pixels, so training stays unsupervised. None = off (the paper).
+    Keyed only when set. A lever (docs/notes/cpu_recipe.md)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
@@ -218,6 +229,22 @@ class TrainConfig:
                     f"refinement lr > 0), got {self.slot_distill}"
                 )
             object.__setattr__(self, "slot_distill", (float(w), int(n), float(rate)))
+        if self.refine_train is not None:
+            try:
+                n, rate, r = (float(x) for x in self.refine_train)
+            except (TypeError, ValueError):  # not three numbers
+                n = rate = r = 0.0
+            if not (n == int(n) and n >= 1 and rate > 0 and r == int(r) and r >= 1):
+                raise ValueError(
+                    "TrainConfig.refine_train must be (refinement steps >= 1, refinement "
+                    f"lr > 0, input-view rays >= 1), got {self.refine_train}"
+                )
+            if self.slot_distill is not None:
+                raise ValueError(
+                    "TrainConfig.refine_train and slot_distill refine the slots in two "
+                    "different ways; set one of them"
+                )
+            object.__setattr__(self, "refine_train", (int(n), float(rate), int(r)))
         object.__setattr__(self, "enc_lr_scale", float(self.enc_lr_scale))
         if not (math.isfinite(self.enc_lr_scale) and self.enc_lr_scale > 0.0):
             raise ValueError(
@@ -282,8 +309,9 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
         ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter``,
-        ``coarse_to_fine``, ``ema_decay``, ``enc_lr_scale``, ``lr_decay_from`` and
-        ``slot_distill`` only when set, so that the keys of earlier runs stay valid."""
+        ``coarse_to_fine``, ``ema_decay``, ``enc_lr_scale``, ``lr_decay_from``,
+        ``slot_distill`` and ``refine_train`` only when set, so that the keys of earlier
+        runs stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         if d["salient_fade"] is None:
@@ -302,6 +330,10 @@ class TrainConfig:
             del d["slot_distill"]
         else:
             d["slot_distill"] = list(d["slot_distill"])
+        if d["refine_train"] is None:
+            del d["refine_train"]
+        else:
+            d["refine_train"] = list(d["refine_train"])
         if d["input_view_from"] is None:
             del d["input_view_from"]
         if not d["pixel_jitter"]:

@@ -89,8 +89,8 @@ def test_config_key_names_what_is_learned():
     assert config_key(m, t.replace(**changed)) == key
     every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
     # target_size, salient_fade, input_view_from, pixel_jitter, coarse_to_fine, ema_decay,
-    # enc_lr_scale, lr_decay_from and slot_distill are written only when set, so the keys of earlier runs
-    # stay valid (the cpu recipe sets ema_decay)
+    # enc_lr_scale, lr_decay_from, slot_distill and refine_train are written only when set, so
+    # the keys of earlier runs stay valid (the cpu recipe sets ema_decay)
     unset = {
         "target_size",
         "salient_fade",
@@ -100,6 +100,7 @@ def test_config_key_names_what_is_learned():
         "enc_lr_scale",
         "lr_decay_from",
         "slot_distill",
+        "refine_train",
     }
     assert t.ema_decay == 0.999 and set(learning_fields(t)) == every - unset
     plain = t.replace(ema_decay=0.0)
@@ -112,6 +113,7 @@ def test_config_key_names_what_is_learned():
         "enc_lr_scale",
         "lr_decay_from",
         "slot_distill",
+        "refine_train",
     }
     assert config_key(m, finer) != key
     coarse = t.replace(coarse_to_fine=(2, 0.5))
@@ -127,6 +129,9 @@ def test_config_key_names_what_is_learned():
     taught = t.replace(slot_distill=(1.0, 5, 1e-2))
     assert set(learning_fields(taught)) == every - unset | {"slot_distill"}
     assert config_key(m, taught) != key
+    iterative = t.replace(refine_train=(3, 2e-2, 128))
+    assert set(learning_fields(iterative)) == every - unset | {"refine_train"}
+    assert config_key(m, iterative) not in (key, config_key(m, taught))
     assert config_key(m, t.replace(seed=1)) != key
     assert config_key(m.replace(num_slots=7), t) != key
     assert config_key(*run_configs("cpu", "clevr567", recipe=False)) != key

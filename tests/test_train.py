@@ -582,3 +582,33 @@ def test_slot_distill_pulls_the_slots_to_their_refinement_and_resumes(split, tmp
     assert refined.shape == slots.shape and not refined.requires_grad
     assert float(mse[1]) < float(mse[0])
     assert all(p.grad is None and p.requires_grad for p in model.parameters())
+
+
+def test_refine_train_renders_from_refined_slots_and_resumes(split, tmp_path):
+    iterative = {"refine_train": (2, 2e-2, 16), "nvs_warmup": 2}
+    full, part, plain = tmp_path / "full", tmp_path / "part", tmp_path / "plain"
+    train(split, full, MCFG, tcfg(**iterative), progress=False)
+    train(split, part, MCFG, tcfg(steps=3, **iterative), progress=False)
+    train(split, part, MCFG, tcfg(**iterative), resume=True, progress=False)
+    train(split, plain, MCFG, tcfg(nvs_warmup=2), progress=False)
+    a = torch.load(full / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(part / "checkpoint.pt", weights_only=True)["model"]
+    c = torch.load(plain / "checkpoint.pt", weights_only=True)["model"]
+    for k, v in a.items():
+        assert torch.equal(v, b[k]), k
+    assert not all(torch.equal(v, c[k]) for k, v in a.items())
+    # The encoder still learns through the refinement (the identity's gradient).
+    enc = [k for k in a if k.startswith("encoder.")]
+    assert enc and not all(torch.equal(a[k], c[k]) for k in enc)
+    log = _log(full)
+    assert all("refine_gain" not in r["parts"] for r in log if r["step"] <= 2)
+    late = [r["parts"] for r in log if r["step"] > 2]
+    assert late and all(p["refine_gain"] > 0 for p in late)
+    assert tcfg(**iterative).to_dict()["refine_train"] == [2, 0.02, 16]
+    assert "refine_train" not in tcfg().to_dict()
+    assert TrainConfig.from_dict(tcfg(**iterative).to_dict()) == tcfg(**iterative)
+    for bad in ((0, 2e-2, 16), (2, 0.0, 16), (2, 2e-2, 0), (2, 2e-2), (2.5, 2e-2, 16), "x"):
+        with pytest.raises(ValueError, match="refine_train"):
+            tcfg(refine_train=bad)
+    with pytest.raises(ValueError, match="one of them"):
+        tcfg(refine_train=(2, 2e-2, 16), slot_distill=(1.0, 2, 1e-2))
