@@ -62,7 +62,7 @@ def refine_batch(
     slot_mask: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Refine a batch of scenes' slots on the given rays: the target of
-    ``TrainConfig.slot_distill``.
+    ``TrainConfig.slot_distill`` and the slots ``TrainConfig.refine_train`` renders from.
 
     Adam on the slot vectors alone, ``steps`` steps, every step on all ``R`` rays of each
     scene, deterministic samples, photometric MSE. The model's parameters get no gradient
