@@ -30,6 +30,7 @@ import torch
 from scenefmt import default_file_mode, legacy_fingerprint
 from svorf.config import ModelConfig
 from svorf.model import SVORF
+from svorf.optim import parse_probe
 from svorf.ray_sampling import ErrorMap
 from svorf.train_config import TrainConfig
 
@@ -180,6 +181,7 @@ def write_checkpoint(
     error_map: ErrorMap | None = None,
     init_from: dict[str, Any] | None = None,
     model_ema: dict[str, Any] | None = None,
+    average_probes: dict[str, Any] | None = None,
 ) -> None:
     """Write the run's state after ``step`` optimizer steps to ``path`` (atomically).
 
@@ -191,6 +193,8 @@ def write_checkpoint(
         error_map: the ``"error_driven"`` ray sampling's state, when used.
         init_from: what :func:`init_weights_from` loaded at step 0, when used.
         model_ema: the averaged weights (a model state dict), when kept.
+        average_probes: ``TrainConfig.average_probes``' averages
+            (``ProbeAverages.state_dict``), when kept.
     """
     atomic_torch_save(
         {
@@ -208,6 +212,7 @@ def write_checkpoint(
             **({"error_map": error_map.state_dict()} if error_map is not None else {}),
             **({"init_from": init_from} if init_from else {}),
             **({"model_ema": model_ema} if model_ema is not None else {}),
+            **({"model_average_probes": average_probes} if average_probes else {}),
         },
         path,
     )
@@ -288,11 +293,13 @@ class RunInfo:
     """``fingerprint``, ``root``, ``n_scenes``, ``image_hw`` of the training data."""
     wall_s: float
     weights: str = "raw"
-    """Which weights the model holds: "raw" (the optimizer's) or "ema" (their average)."""
+    """Which weights the model holds: "raw" (the optimizer's), "ema" (their average) or
+    the name of one of ``TrainConfig.average_probes``."""
 
 
 #: ``load_run``'s choices of weights: the average when the run kept one ("auto"), the
-#: optimizer's weights ("raw"), or the average, required ("ema").
+#: optimizer's weights ("raw"), or the average, required ("ema"). A run trained with
+#: ``TrainConfig.average_probes`` also takes each probe's name ("ema0.9995", "tail0.8").
 WEIGHTS = ("auto", "raw", "ema")
 
 
@@ -302,21 +309,36 @@ def load_run(
     """Load the latest checkpoint of a run folder.
 
     Args:
-        weights: a name in :data:`WEIGHTS`; a run trained with ``TrainConfig.ema_decay``
-            is evaluated with its moving average unless "raw" is asked for.
+        weights: a name in :data:`WEIGHTS`, or one of the run's ``average_probes``; a run
+            trained with ``TrainConfig.ema_decay`` is evaluated with its moving average
+            unless "raw" is asked for.
 
     Returns:
         ``(model, info)``: the model in eval mode on ``device``, and its configs.
 
     Raises:
         CheckpointError: the checkpoint is missing, corrupt or of another format, or
-            "ema" is asked of a run without an average (one line).
+            "ema" is asked of a run without an average, or a probe it did not keep (one
+            line).
     """
-    if weights not in WEIGHTS:
-        raise ValueError(f"load_run: weights must be one of {list(WEIGHTS)}, got {weights!r}")
     path = Path(run_dir) / CHECKPOINT_NAME
+    if weights not in WEIGHTS:
+        try:
+            parse_probe(weights)
+        except ValueError:
+            raise ValueError(
+                f"load_run: weights must be one of {list(WEIGHTS)} or an average probe's "
+                f"name (e.g. ema0.9995, tail0.8), got {weights!r}"
+            ) from None
     ckpt = read_checkpoint(path)
-    ema = ckpt.get("model_ema")
+    probes = ckpt.get("model_average_probes") or {}
+    if weights not in WEIGHTS and weights not in probes:
+        kept = ", ".join(sorted(probes)) or "none"
+        raise CheckpointError(
+            f"{path}: kept no average probe {weights!r} (kept: {kept}); train with "
+            f"TrainConfig.average_probes=({weights!r},) to score it"
+        )
+    ema = probes[weights]["model"] if weights in probes else ckpt.get("model_ema")
     if weights == "ema" and ema is None:
         raise CheckpointError(
             f"{path}: holds no averaged weights (trained without ema_decay); use the raw weights"
@@ -337,7 +359,7 @@ def load_run(
         int(ckpt["step"]),
         dict(ckpt.get("dataset", {})),
         float(ckpt.get("wall_s", 0.0)),
-        "ema" if use_ema else "raw",
+        weights if weights in probes else "ema" if use_ema else "raw",
     )
     return model, info
 

@@ -4,7 +4,9 @@ moving average of the weights.
 Where this sits: ``svorf.train`` builds its optimizer with :func:`make_optimizer`, checks
 every step's gradients with :func:`grad_norm` and, with ``TrainConfig.ema_decay``, keeps a
 :class:`WeightAverage` that checkpoints store as ``model_ema`` (what ``load_run``
-evaluates); ``benchmark.tools.speedbench --optimizer`` times Adam and the norm against the
+evaluates), and with ``TrainConfig.average_probes`` the extra averages of
+:class:`ProbeAverages` (``model_average_probes``, scored with ``load_run(weights=NAME)``);
+``benchmark.tools.speedbench --optimizer`` times Adam and the norm against the
 per-tensor forms they replace.
 
 On a CPU the per-tensor forms took 9.6% of a cpu-recipe training step in a profile (136
@@ -109,3 +111,108 @@ class WeightAverage:
         """
         for avg, name in zip(self.averages, self.names, strict=True):
             avg.copy_(averaged_state[name].float())
+
+
+class TailAverage:
+    """The uniform mean of a model's trainable weights after every optimizer step from
+    ``start`` (a fraction of the run) on (stochastic weight averaging's mean, at a flat
+    rate). Until then it follows the weights.
+
+    Args:
+        named_params: ``(name, parameter)`` pairs as ``model.named_parameters()`` gives them.
+        start: the fraction of the run in [0, 1) from which steps are averaged.
+    """
+
+    def __init__(self, named_params: Iterable[tuple[str, torch.nn.Parameter]], start: float):
+        if not 0.0 <= start < 1.0:
+            raise ValueError(f"TailAverage: start must be in [0, 1), got {start}")
+        pairs = [(n, p) for n, p in named_params if p.requires_grad]
+        self.start = float(start)
+        self.names = [n for n, _ in pairs]
+        self.params = [p for _, p in pairs]
+        self.averages = [p.detach().float().clone() for p in self.params]
+        self.count = 0
+        """Steps averaged so far."""
+
+    @torch.no_grad()
+    def update(self, step: int, progress: float) -> None:
+        """Fold in the weights after optimizer step ``step`` taken at ``progress``."""
+        weights = [p.detach().float() for p in self.params]
+        if progress < self.start:
+            torch._foreach_copy_(self.averages, weights)
+            return
+        self.count += 1
+        torch._foreach_lerp_(self.averages, weights, 1.0 / self.count)
+
+    state_dict = WeightAverage.state_dict
+    load = WeightAverage.load
+
+
+PROBE_KINDS = {
+    "ema": "an exponential moving average with this decay",
+    "tail": "the mean from this fraction of the run on",
+}
+"""The kinds of ``TrainConfig.average_probes`` names: ``ema0.9995``, ``tail0.8``."""
+
+
+def parse_probe(name: str) -> tuple[str, float]:
+    """``(kind, value)`` of an average probe's name (``"ema0.9995"`` -> ``("ema", 0.9995)``).
+
+    Raises:
+        ValueError: not ``ema`` + a decay in (0, 1) or ``tail`` + a fraction in [0, 1).
+    """
+    for kind in PROBE_KINDS:
+        if name.startswith(kind):
+            try:
+                value = float(name[len(kind) :])
+            except ValueError:
+                break
+            ok = 0.0 < value < 1.0 if kind == "ema" else 0.0 <= value < 1.0
+            if ok:
+                return kind, value
+            break
+    raise ValueError(
+        f"average probe {name!r}: use 'ema' + a decay in (0, 1) (e.g. ema0.9995) or "
+        "'tail' + the fraction of the run it starts at, in [0, 1) (e.g. tail0.8)"
+    )
+
+
+class ProbeAverages:
+    """The extra weight averages of ``TrainConfig.average_probes``, kept beside the run
+    and never used by it: one run scores each of them against its own weights and its
+    ``ema_decay`` average at the same steps (``load_run(weights=NAME)``).
+    """
+
+    def __init__(
+        self, names: Iterable[str], named_params: Iterable[tuple[str, torch.nn.Parameter]]
+    ):
+        pairs = list(named_params)
+        self.items: dict[str, WeightAverage | TailAverage] = {}
+        for name in names:
+            kind, value = parse_probe(name)
+            self.items[name] = (
+                WeightAverage(pairs, value) if kind == "ema" else TailAverage(pairs, value)
+            )
+
+    def update(self, step: int, progress: float) -> None:
+        """After optimizer step ``step`` (1-based), taken at ``progress``."""
+        for avg in self.items.values():
+            if isinstance(avg, TailAverage):
+                avg.update(step, progress)
+            else:
+                avg.update(step)
+
+    def state_dict(self, model_state: Mapping[str, Tensor]) -> dict[str, Any]:
+        """``{name: {"model": state dict, "count": steps averaged (tail only)}}``."""
+        return {
+            name: {"model": avg.state_dict(model_state), "count": getattr(avg, "count", None)}
+            for name, avg in self.items.items()
+        }
+
+    def load(self, saved: Mapping[str, Any] | None, model_state: Mapping[str, Tensor]) -> None:
+        """Restore from a :meth:`state_dict` (a probe it lacks starts from ``model_state``)."""
+        for name, avg in self.items.items():
+            entry = (saved or {}).get(name)
+            avg.load(entry["model"] if entry else model_state)
+            if isinstance(avg, TailAverage):
+                avg.count = int(entry["count"]) if entry and entry["count"] is not None else 0

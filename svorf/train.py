@@ -75,7 +75,7 @@ from svorf.checkpoint import (
 from svorf.config import ModelConfig, bf16_autocast_on
 from svorf.data import MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
 from svorf.model import SVORF
-from svorf.optim import WeightAverage, grad_norm, make_optimizer, param_groups
+from svorf.optim import ProbeAverages, WeightAverage, grad_norm, make_optimizer, param_groups
 from svorf.predict import ScenePrediction, default_eval, predict_scene
 from svorf.ray_sampling import ErrorMap
 from svorf.refine import refine_batch
@@ -285,6 +285,8 @@ class _Run:
     saved: int | None = None
     """The step of the checkpoint on disk, None before the first one."""
     average: WeightAverage | None = None
+    probes: ProbeAverages | None = None
+    """``TrainConfig.average_probes``: extra averages for comparison, never used."""
 
 
 def _setup(
@@ -354,6 +356,9 @@ def _setup(
     out.mkdir(parents=True, exist_ok=True)
     ema = train_cfg.ema_decay
     average = WeightAverage(model.named_parameters(), ema) if ema else None
+    probes = None
+    if train_cfg.average_probes:
+        probes = ProbeAverages(train_cfg.average_probes, model.named_parameters())
     return _Run(
         out=out,
         ckpt_path=ckpt_path,
@@ -376,6 +381,7 @@ def _setup(
         model=model,
         opt=opt,
         average=average,
+        probes=probes,
     )
 
 
@@ -419,6 +425,8 @@ def _start(
         run.init_info = init_weights_from(getattr(run.model, "module", run.model), init_from)
         if run.average is not None:
             run.average.load(run.model.state_dict())
+        if run.probes is not None:
+            run.probes.load(None, run.model.state_dict())
     if run.dctx is not None:  # identical already (same seed / checkpoint); made certain here
         distributed.broadcast_module(run.model)
     if run.main:
@@ -447,6 +455,8 @@ def _resume(run: _Run, data_dir: str | os.PathLike) -> None:
     run.init_info = ckpt.get("init_from")
     if run.average is not None:  # the checkpoint's average (none before ema_decay: the weights)
         run.average.load(ckpt.get("model_ema") or run.model.state_dict())
+    if run.probes is not None:
+        run.probes.load(ckpt.get("model_average_probes"), run.model.state_dict())
     # The state now lives in model/optimizer; the checkpoint's own copy of the weights
     # would otherwise stay alive (a second copy of the model) for the whole run.
     del ckpt
@@ -529,6 +539,8 @@ def _train_step(
     opt.zero_grad(set_to_none=True)
     if run.average is not None:
         run.average.update(done)
+    if run.probes is not None:
+        run.probes.update(done, progress)
     run.last_loss = float(loss.detach())
     return lr, parts, gnorm
 
@@ -717,6 +729,7 @@ def _save(run: _Run, step: int, wall: float) -> None:
         error_map=run.error_map,
         init_from=run.init_info,
         model_ema=run.average.state_dict(run.model.state_dict()) if run.average else None,
+        average_probes=run.probes.state_dict(run.model.state_dict()) if run.probes else None,
     )
 
 

@@ -26,6 +26,7 @@ import torch
 from scenefmt.cli_util import choose
 from svorf import registry
 from svorf.config import ModelConfig, model_config, ramp
+from svorf.optim import parse_probe
 from svorf.ray_sampling import (
     OBJECT_HEAVY_FRACTION,
     RAY_SAMPLING,
@@ -155,6 +156,14 @@ class TrainConfig:
     (``svorf.optim.WeightAverage``; 0 = off, the paper). Training itself is unchanged;
     checkpoints also hold the average (``model_ema``) and ``load_run`` evaluates it unless
     asked for the raw weights, so one run scores both. A lever (docs/notes/cpu_recipe.md)."""
+    average_probes: tuple[str, ...] = ()
+    """Extra weight averages kept beside the run for comparison, never used by it nor
+    scored unless asked for: ``"emaD"`` an exponential moving average with decay D
+    (``svorf.optim.WeightAverage``), ``"tailP"`` the uniform mean of the weights from the
+    fraction P of the run on (``svorf.optim.TailAverage``). Checkpoints hold them
+    (``model_average_probes``); ``load_run(weights=NAME)`` and ``diagnose --weights NAME``
+    score one, so a single run compares them with its ``ema_decay`` average and its own
+    weights at the same steps. Training is unchanged. () = none (every scale)."""
     enc_lr_scale: float = 1.0
     """The learning rate of the slot inference (the image encoder and the slot decoder:
     ``SVORF.encoder``, ``SVORF.slot_module``) as a multiple of ``lr`` at every step, warm-up
@@ -229,6 +238,16 @@ class TrainConfig:
                     f"refinement lr > 0), got {self.slot_distill}"
                 )
             object.__setattr__(self, "slot_distill", (float(w), int(n), float(rate)))
+        if self.average_probes:
+            names = tuple(str(x) for x in self.average_probes)
+            for name in names:
+                try:
+                    parse_probe(name)
+                except ValueError as e:
+                    raise ValueError(f"TrainConfig.average_probes: {e}") from None
+            if len(set(names)) != len(names):
+                raise ValueError(f"TrainConfig.average_probes: a name repeats in {list(names)}")
+            object.__setattr__(self, "average_probes", names)
         if self.refine_train is not None:
             try:
                 n, rate, r = (float(x) for x in self.refine_train)
@@ -310,7 +329,7 @@ class TrainConfig:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
         ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter``,
         ``coarse_to_fine``, ``ema_decay``, ``enc_lr_scale``, ``lr_decay_from``,
-        ``slot_distill`` and ``refine_train`` only when set, so that the keys of earlier
+        ``slot_distill``, ``refine_train`` and ``average_probes`` only when set, so that the keys of earlier
         runs stay valid."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
@@ -330,6 +349,10 @@ class TrainConfig:
             del d["slot_distill"]
         else:
             d["slot_distill"] = list(d["slot_distill"])
+        if not d["average_probes"]:
+            del d["average_probes"]
+        else:
+            d["average_probes"] = list(d["average_probes"])
         if d["refine_train"] is None:
             del d["refine_train"]
         else:

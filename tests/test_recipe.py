@@ -547,6 +547,13 @@ def test_diagnose_subcommand_and_final_eval_failures(split, tmp_path, capsys):
     assert main([*argv, "--scenes", "1", "--weights", "ema"]) == 2
     err = capsys.readouterr().err.strip()
     assert "no averaged weights" in err and len(err.splitlines()) == 1
+    for name, msg in [
+        ("ema0.999", "kept no average probe 'ema0.999'"),
+        ("best", "weights must be"),
+    ]:
+        assert main([*argv, "--scenes", "1", "--weights", name]) == 2
+        err = capsys.readouterr().err.strip()
+        assert msg in err and len(err.splitlines()) == 1
 
 
 def test_bg_pos_freqs_limits_only_the_background_slots_bandwidth():

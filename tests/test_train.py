@@ -15,6 +15,7 @@ from svorf.cli import main
 from svorf.config import model_config
 from svorf.data import MultiViewDataset
 from svorf.model import SVORF
+from svorf.optim import TailAverage
 from svorf.synthetic import write_synthetic_split
 from svorf.train import (
     CheckpointError,
@@ -193,6 +194,57 @@ def test_weight_average_is_checkpointed_resumed_and_evaluated(split, tmp_path):
     assert "ema_decay" not in tcfg().to_dict() and tcfg(**ema).to_dict()["ema_decay"] == 0.9
     with pytest.raises(ValueError, match="ema_decay must be in"):
         tcfg(ema_decay=1.0)
+
+
+def test_average_probes_leave_training_alone_and_are_scored_by_name(split, tmp_path):
+    """``average_probes``: the run's weights and its ``ema_decay`` average are those of a
+    run without them; each probe is what its own average would be, survives a resume, and
+    ``load_run`` scores it by name."""
+    ema = {"ema_decay": 0.9}
+    probes = {"average_probes": ("ema0.2", "tail0.7")}
+    base, full, part = tmp_path / "base", tmp_path / "full", tmp_path / "part"
+    train(split, base, MCFG, tcfg(**ema), progress=False)
+    train(split, full, MCFG, tcfg(**ema, **probes), progress=False)
+    train(split, part, MCFG, tcfg(steps=3, **ema, **probes), progress=False)
+    train(split, part, MCFG, tcfg(**ema, **probes), resume=True, progress=False)
+    a0 = torch.load(base / "checkpoint.pt", weights_only=True)
+    a = torch.load(full / "checkpoint.pt", weights_only=True)
+    b = torch.load(part / "checkpoint.pt", weights_only=True)
+    for k, v in a0["model"].items():
+        assert torch.equal(v, a["model"][k]), k
+        assert torch.equal(a0["model_ema"][k], a["model_ema"][k]), k
+    pa, pb = a["model_average_probes"], b["model_average_probes"]
+    assert sorted(pa) == ["ema0.2", "tail0.7"] and pa["tail0.7"]["count"] == pb["tail0.7"]["count"]
+    for name in pa:
+        for k, v in pa[name]["model"].items():
+            assert torch.equal(v, pb[name]["model"][k]), (name, k)
+    # Of 6 steps only the last starts at progress >= 0.7 (5/6); the first leg of the resumed
+    # run (3 steps, progress < 0.7 throughout) averages none.
+    assert pa["tail0.7"]["count"] == 1
+    moved = [k for k, v in a["model"].items() if not torch.equal(v, pa["ema0.2"]["model"][k])]
+    assert moved and any(
+        not torch.equal(pa["ema0.2"]["model"][k], a["model_ema"][k]) for k in moved
+    )
+    model, info = load_run(full, weights="tail0.7")
+    assert info.weights == "tail0.7"
+    for k, v in pa["tail0.7"]["model"].items():
+        assert torch.equal(model.state_dict()[k], v), k
+    with pytest.raises(CheckpointError, match="kept no average probe 'ema0.99'.*ema0.2, tail0.7"):
+        load_run(full, weights="ema0.99")
+    with pytest.raises(ValueError, match="weights must be one of"):
+        load_run(full, weights="mean")
+    assert "average_probes" not in tcfg().to_dict()
+    with pytest.raises(ValueError, match="average_probes.*'ema1.5'"):
+        tcfg(average_probes=("ema1.5",))
+
+
+def test_tail_average_is_the_mean_of_the_weights_from_its_start():
+    p = torch.nn.Parameter(torch.zeros(3))
+    avg = TailAverage([("w", p)], start=0.5)
+    for step, (progress, value) in enumerate([(0.0, 9.0), (0.5, 1.0), (0.75, 2.0), (0.9, 6.0)], 1):
+        p.data.fill_(value)
+        avg.update(step, progress)
+    assert avg.count == 3 and torch.allclose(avg.averages[0], torch.full((3,), 3.0))
 
 
 def test_resume_refuses_a_different_run(split, tmp_path):

@@ -400,10 +400,11 @@ def main(argv: list[str] | None = None) -> int:
     dg.add_argument("--occlusion", action="store_true",
                     help="also break the failures down by how much of each object other "
                     "objects hide in the input view (ray-cast from the scene JSONs)")  # fmt: skip
-    dg.add_argument("--weights", choices=WEIGHTS, default="auto",
+    dg.add_argument("--weights", default="auto", metavar="{" + ",".join(WEIGHTS) + ",NAME}",
                     help="auto: the moving average when the run kept one (ema_decay), else "
                     "the optimizer's weights; raw: the optimizer's weights, written to "
-                    "failures-raw.json (default: auto)")  # fmt: skip
+                    "failures-raw.json; NAME: one of the run's average_probes (e.g. "
+                    "ema0.9995), written to failures-NAME.json (default: auto)")  # fmt: skip
     pl = sub.add_parser("plot", help="loss and held-out FG-ARI of runs over wall time (PNG)")
     pl.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR")
     pl.add_argument("--out", required=True, help="PNG path")
@@ -431,6 +432,8 @@ def main(argv: list[str] | None = None) -> int:
             model, info = load_run(Path(a.run), weights=a.weights)
         except CheckpointError as err:
             return fail(_PROG, f"diagnose: {err}")
+        except ValueError as err:  # not a name of weights
+            return fail(_PROG, f"diagnose --weights: {err}")
         probe = dict(_parse_set(x, "--render-set") for x in a.render_set)
         try:
             render_probe(model, probe)
@@ -447,8 +450,8 @@ def main(argv: list[str] | None = None) -> int:
         if a.depth:
             res["depth"] = depth_breakdown(model, test)
         name = "failures-probe.json" if probe else "failures.json"
-        if a.weights == "raw" and not probe:
-            name = "failures-raw.json"
+        if a.weights not in ("auto", "ema") and not probe:
+            name = f"failures-{a.weights}.json"
         atomic_write_json(Path(a.run) / name, res)
         if a.grid:
             res["grid"] = str(save_segmentation_grid(model, test, a.grid, a.grid_scenes))
