@@ -89,8 +89,8 @@ def test_config_key_names_what_is_learned():
     assert config_key(m, t.replace(**changed)) == key
     every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
     # target_size, salient_fade, input_view_from, pixel_jitter, coarse_to_fine, ema_decay,
-    # enc_lr_scale, lr_decay_from, slot_distill and refine_train are written only when set, so
-    # the keys of earlier runs stay valid (the cpu recipe sets ema_decay)
+    # enc_lr_scale, lr_decay_from, slot_distill, refine_train and average_probes are written
+    # only when set, so the keys of earlier runs stay valid (the cpu recipe sets ema_decay)
     unset = {
         "target_size",
         "salient_fade",
@@ -101,6 +101,7 @@ def test_config_key_names_what_is_learned():
         "lr_decay_from",
         "slot_distill",
         "refine_train",
+        "average_probes",
     }
     assert t.ema_decay == 0.999 and set(learning_fields(t)) == every - unset
     plain = t.replace(ema_decay=0.0)
@@ -114,8 +115,12 @@ def test_config_key_names_what_is_learned():
         "lr_decay_from",
         "slot_distill",
         "refine_train",
+        "average_probes",
     }
     assert config_key(m, finer) != key
+    probed = t.replace(average_probes=("ema0.9995", "tail0.8"))
+    assert set(learning_fields(probed)) == every - unset | {"average_probes"}
+    assert config_key(m, probed) != key
     coarse = t.replace(coarse_to_fine=(2, 0.5))
     assert set(learning_fields(coarse)) == every - unset | {"coarse_to_fine"}
     assert config_key(m, coarse) != key
