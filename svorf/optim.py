@@ -82,8 +82,12 @@ class WeightAverage:
     def __init__(self, named_params: Iterable[tuple[str, torch.nn.Parameter]], decay: float):
         if not 0.0 < decay < 1.0:
             raise ValueError(f"WeightAverage: decay must be in (0, 1), got {decay}")
-        pairs = [(n, p) for n, p in named_params if p.requires_grad]
         self.decay = float(decay)
+        self._track(named_params)
+
+    def _track(self, named_params: Iterable[tuple[str, torch.nn.Parameter]]) -> None:
+        """Keep float32 copies of the trainable ones of ``named_params``."""
+        pairs = [(n, p) for n, p in named_params if p.requires_grad]
         self.names = [n for n, _ in pairs]
         self.params = [p for _, p in pairs]
         self.averages = [p.detach().float().clone() for p in self.params]
@@ -113,7 +117,7 @@ class WeightAverage:
             avg.copy_(averaged_state[name].float())
 
 
-class TailAverage:
+class TailAverage(WeightAverage):
     """The uniform mean of a model's trainable weights after every optimizer step from
     ``start`` (a fraction of the run) on (stochastic weight averaging's mean, at a flat
     rate). Until then it follows the weights.
@@ -126,16 +130,13 @@ class TailAverage:
     def __init__(self, named_params: Iterable[tuple[str, torch.nn.Parameter]], start: float):
         if not 0.0 <= start < 1.0:
             raise ValueError(f"TailAverage: start must be in [0, 1), got {start}")
-        pairs = [(n, p) for n, p in named_params if p.requires_grad]
         self.start = float(start)
-        self.names = [n for n, _ in pairs]
-        self.params = [p for _, p in pairs]
-        self.averages = [p.detach().float().clone() for p in self.params]
+        self._track(named_params)
         self.count = 0
         """Steps averaged so far."""
 
     @torch.no_grad()
-    def update(self, step: int, progress: float) -> None:
+    def update(self, step: int, progress: float = 1.0) -> None:  # type: ignore[override]
         """Fold in the weights after optimizer step ``step`` taken at ``progress``."""
         weights = [p.detach().float() for p in self.params]
         if progress < self.start:
@@ -144,15 +145,10 @@ class TailAverage:
         self.count += 1
         torch._foreach_lerp_(self.averages, weights, 1.0 / self.count)
 
-    state_dict = WeightAverage.state_dict
-    load = WeightAverage.load
 
-
-PROBE_KINDS = {
-    "ema": "an exponential moving average with this decay",
-    "tail": "the mean from this fraction of the run on",
-}
-"""The kinds of ``TrainConfig.average_probes`` names: ``ema0.9995``, ``tail0.8``."""
+PROBE_KINDS = ("ema", "tail")
+"""The kinds of ``TrainConfig.average_probes`` names: ``ema0.9995`` (a moving average with
+this decay), ``tail0.8`` (the mean from this fraction of the run on)."""
 
 
 def parse_probe(name: str) -> tuple[str, float]:
