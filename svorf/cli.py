@@ -332,17 +332,19 @@ def _train_ranked(
     from svorf.train_config import config_key
 
     main = ctx is None or ctx.is_main
+    resumed = ""
     if a.resume:  # a corrupt checkpoint is reported before any data is loaded
         from svorf.train import CHECKPOINT_NAME, read_checkpoint
 
         if (Path(a.out) / CHECKPOINT_NAME).exists():
-            read_checkpoint(Path(a.out) / CHECKPOINT_NAME)
+            step = read_checkpoint(Path(a.out) / CHECKPOINT_NAME).get("step")
+            resumed = f", resuming at step {step:,}" if isinstance(step, int) else ""
     if main:
         ranks = "" if ctx is None else f", {ctx.world_size} ranks ({ctx.backend})"
         print(
             f"svorf train: scale {a.scale}, preset {a.preset}, K={mcfg.num_slots}, "
             f"image {mcfg.image_size}, {n:,} parameters, {tcfg.steps} steps{ranks}, "
-            f"config key {config_key(mcfg, tcfg)}",
+            f"config key {config_key(mcfg, tcfg)}{resumed}",
             flush=True,
         )
     summary = train(

@@ -547,9 +547,11 @@ def test_cli_train_render_info(split, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "parameters" in out and (run / "checkpoint.pt").is_file()
     assert load_run(run)[1].train.seed == 3
+    assert "resuming" not in out
     assert main(argv + ["--resume", "--steps", "3"]) == 0
     assert load_run(run)[1].step == 3
-    capsys.readouterr()
+    assert "3 steps, config key" in (out := capsys.readouterr().out)
+    assert out.splitlines()[0].endswith(", resuming at step 2")
     dest = tmp_path / "render"
     assert main(["render", str(run), "--data", str(split), "--scene", "1", "--out", str(dest)]) == 0
     pngs = sorted(p.name for p in dest.glob("*.png"))
