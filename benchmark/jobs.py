@@ -24,6 +24,7 @@ from benchmark.datasets import DatasetInfo
 from benchmark.evaluate import EvalResult, evaluate_model
 from benchmark.report import write_json
 from scenefmt import atomic_write_bytes
+from scenefmt.cli_util import progress_kwargs
 
 __all__ = ["ModelJob", "evaluate_run", "read_eval", "train_run", "write_eval"]
 
@@ -103,6 +104,7 @@ def evaluate_run(
             total=len(ds) if max_scenes is None else min(len(ds), max_scenes),
             desc=f"eval {test.preset}",
             dynamic_ncols=True,
+            **progress_kwargs(),
         )
     try:
         res = evaluate_model(

@@ -33,6 +33,7 @@ from benchmark.datasets import DatasetInfo
 from benchmark.generator_bridge import DatasetUnavailable
 from benchmark.jobs import read_eval
 from benchmark.log import log
+from scenefmt.cli_util import progress_kwargs
 
 __all__ = ["RayJobError", "cpus_per_task", "run_jobs_on_ray"]
 
@@ -78,7 +79,7 @@ def _gather(ray: Any, refs: dict[Any, str], what: str, progress: bool) -> None:
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(refs), desc=f"ray {what}", dynamic_ncols=True)
+        bar = tqdm(total=len(refs), desc=f"ray {what}", dynamic_ncols=True, **progress_kwargs())
     pending = dict(refs)
     try:
         while pending:

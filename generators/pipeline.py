@@ -35,6 +35,7 @@ from generators.presets import PRESETS, Preset, get_preset, scene_preset
 from generators.spec import RenderSettings
 from generators.worker import close_worker_session, init_worker, render_manip_one, render_one
 from generators.writer import manifest
+from scenefmt.cli_util import progress_kwargs
 
 MAX_SCENES = 10_000  # sc%04d file names
 
@@ -457,7 +458,13 @@ def generate_dataset(cfg: GenerateConfig) -> GenerateSummary:
     if cfg.progress and todo:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(todo), unit="scene", desc=f"{preset.name}/{split}", dynamic_ncols=True)
+        bar = tqdm(
+            total=len(todo),
+            unit="scene",
+            desc=f"{preset.name}/{split}",
+            dynamic_ncols=True,
+            **progress_kwargs(),
+        )
     workers = min(cfg.n_workers(), max(1, len(to_render)))
     threads = cfg.n_threads()
     render_s = 0.0

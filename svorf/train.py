@@ -58,6 +58,7 @@ import torch
 from torch import Tensor
 
 from scenefmt import atomic_write_json
+from scenefmt.cli_util import progress_kwargs
 from svorf import distributed
 from svorf.checkpoint import (
     CHECKPOINT_FORMAT,
@@ -475,6 +476,7 @@ def _progress_bar(run: _Run) -> Any:
         desc="svorf train",
         unit="step",
         dynamic_ncols=True,
+        **progress_kwargs(),
     )
 
 

@@ -13,6 +13,7 @@ import argparse
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,7 @@ from benchmark.cli import main as benchmark_main
 from benchmark.cli import summary_lines
 from benchmark.tools.recipe import main as recipe_main
 from generators.cli import main as generate_main
+from scenefmt import cli_util
 from scenefmt.cli_util import OneLineParser, choose, did_you_mean, doc_summary, error_line
 from svorf.cli import main as svorf_main
 
@@ -365,3 +367,32 @@ def test_benchmark_bad_scale_from_the_real_entry_point(tmp_path):
     )
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.count("\n") == 1 and "did you mean 'smoke'?" in r.stderr
+
+
+def test_progress_bars_redraw_rarely_into_a_log():
+    """On a terminal tqdm keeps its pace; into a file or pipe it redraws at most every
+    30 s, so a long run's log is not tens of thousands of bar records."""
+    import doctest
+    import io
+
+    from tqdm import tqdm
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    class Closed(io.StringIO):
+        def isatty(self) -> bool:
+            raise ValueError("I/O operation on closed file")
+
+    assert cli_util.progress_kwargs(Terminal()) == {}
+    assert cli_util.progress_kwargs(Closed()) == cli_util.progress_kwargs(io.StringIO())
+    assert doctest.testmod(cli_util).failed == 0
+    log, term = io.StringIO(), Terminal()
+    for out in (log, term):
+        with tqdm(total=2000, file=out, **cli_util.progress_kwargs(out)) as bar:
+            for _ in range(2000):
+                bar.update(1)
+                time.sleep(0.0004)  # about 0.8 s in all: several redraws on a terminal
+    assert log.getvalue().count("\r") <= 3 < term.getvalue().count("\r")
+    assert "2000/2000" in log.getvalue()
