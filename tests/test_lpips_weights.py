@@ -14,12 +14,15 @@ import pickle
 import stat
 import tarfile
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
 from benchmark import cli
+from benchmark.evaluate import EvalResult
+from benchmark.jobs import read_eval, write_eval
 from benchmark.metrics import LPIPS_ENV_VAR, load_lpips_alex, lpips_weight_candidates
 from benchmark.metrics.lpips import LPIPSAlex
 from benchmark.metrics.lpips_weights import (
@@ -33,6 +36,7 @@ from benchmark.metrics.lpips_weights import (
     read_sdist_checkpoint,
     reference_distances,
 )
+from benchmark.runner import Context
 from scenefmt.io import reset_file_mode_cache
 
 DATA = Path(__file__).parent / "data" / "lpips_reference"
@@ -255,3 +259,21 @@ def test_pip_failures_are_one_line(tmp_path, monkeypatch) -> None:
     with pytest.raises(LPIPSWeightsError, match="something else broke"):
         build_lpips_weights(tmp_path / "o.pth", log=lambda s: None)
     assert not (tmp_path / "o.pth").exists()
+
+
+def test_an_evaluation_without_lpips_weights_is_rescored_once_they_exist(tmp_path, monkeypatch):
+    """A cached evaluation scored with LPIPS null ("weights absent") is not reused after
+    ``benchmark lpips-weights`` fetched them: LPIPS presence is part of the cache key."""
+    weights = tmp_path / "lpips_alex.pth"
+    monkeypatch.setenv(LPIPS_ENV_VAR, str(weights))
+    monkeypatch.setattr("benchmark.metrics.lpips.LPIPS_DEFAULT_PATH", str(tmp_path / "none.pth"))
+    ctx = Context("segmentation", "smoke", tmp_path, tmp_path / "data", progress=False)
+    test = SimpleNamespace(fingerprint="ab" * 32)
+    rec = SimpleNamespace(key="run")
+    before = ctx.eval_dir(rec, test)
+    write_eval(before, EvalResult({"lpips": None}, {"lpips": "weights absent"}, 1))
+    weights.write_bytes(b"weights")  # what `benchmark lpips-weights` leaves behind
+    after = ctx.eval_dir(rec, test)
+    assert after != before and read_eval(after) is None
+    weights.unlink()
+    assert ctx.eval_dir(rec, test) == before and read_eval(before) is not None
