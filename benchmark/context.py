@@ -35,7 +35,13 @@ from typing import Any
 import numpy as np
 
 from benchmark import adapter
-from benchmark.datasets import DatasetInfo, at_resolution, dataset_dir, ensure_dataset
+from benchmark.datasets import (
+    DatasetInfo,
+    at_resolution,
+    dataset_dir,
+    ensure_dataset,
+    split_state,
+)
 from benchmark.evaluate import BASELINES, EVAL_VERSION, EvalResult, evaluate_baselines
 from benchmark.jobs import ModelJob, evaluate_run, read_eval, train_run, write_eval
 from benchmark.log import log
@@ -379,11 +385,15 @@ class Context:
 
     def model_key(self, job: ModelJob) -> tuple[str, dict[str, Any]]:
         """``(cache key, key source)`` of ``job``'s run (needs its training split)."""
-        ds = self.train_dataset(job)
+        key_src = self._key_source(job, self.train_dataset(job).fingerprint)
+        return stable_hash(key_src), key_src
+
+    def _key_source(self, job: ModelJob, fingerprint: str | None) -> dict[str, Any]:
+        """What :meth:`model_key` hashes, with the training split's ``fingerprint``."""
         mcfg, tcfg = self.configs(job)
         key_src: dict[str, Any] = {
             "adapter": adapter.ADAPTER_VERSION,
-            "dataset": ds.fingerprint,
+            "dataset": fingerprint,
             "model": adapter.config_dict(mcfg),
             "train": adapter.learning_fields(tcfg),
             "seed": self.seeds["train"],
@@ -394,7 +404,40 @@ class Context:
         init = self.init_job(job)
         if init is not None:  # only when set: other keys stay what they were
             key_src["init_from"] = self.model_key(init)[0]
-        return stable_hash(key_src), key_src
+        return key_src
+
+    def no_cached_run(self, job: ModelJob) -> bool:
+        """True when no finished run in ``<out>/runs`` can be ``job``'s model and its
+        training split is not on disk: a run that may not train it then needs neither
+        (generating 1,000 scenes only to hash them would find nothing). Runs started from
+        another model's weights are always looked up the full way."""
+        if self.init_job(job) is not None:
+            return False
+        settings = at_resolution(self.settings, self.train_resolution(job))
+        k = (job.train_preset, "train")
+        if settings is not self.settings:
+            k = (*k, settings.resolution)
+        if k in self.datasets:
+            return False
+        state = split_state(
+            self.data,
+            settings,
+            job.train_preset,
+            "train",
+            source=self.data_source,
+            seed=self.seeds["data"],
+        )
+        if state.usable:
+            return False
+        want = json.loads(json.dumps({**self._key_source(job, None), "dataset": None}))
+        for marker in sorted((self.out / "runs").glob("*/benchmark_run.json")):
+            try:
+                src = json.loads(marker.read_text()).get("key_source")
+            except (OSError, ValueError):
+                continue
+            if isinstance(src, dict) and {**src, "dataset": None} == want:
+                return False
+        return True
 
     def config_key(self, job: ModelJob) -> str:
         """svorf's config key of ``job`` (``svorf.train_config.config_key``): what ``svorf
@@ -450,8 +493,11 @@ class Context:
     def model(self, job: ModelJob, train: bool = True) -> ModelRecord | None:
         """Train ``job`` or reuse the cached run with the same key (timed under ``training``).
 
-        With ``train=False`` only a finished cached run is returned (else None).
+        With ``train=False`` only a finished cached run is returned (else None); its
+        training split is generated only where a run in ``<out>/runs`` may be it.
         """
+        if not train and self.no_cached_run(job):
+            return None
         ds = self.train_dataset(job)
         mcfg, tcfg = self.configs(job)
         mdict, tdict = adapter.config_dict(mcfg), adapter.config_dict(tcfg)

@@ -184,6 +184,20 @@ def run_table_protocol(
         rid = row_id(spec.table, spec.model, spec.dataset, "measured")
         try:
             test = ctx.dataset(spec.dataset, "test")
+            if (
+                not ctx.may_train(spec.job)
+                and imported is None
+                and store.get(rid) is None
+                and ctx.no_cached_run(spec.job)
+            ):  # no run can be its model: do not generate its training split to hash it
+                state["tests"][spec.dataset] = test
+                not_trained.append(f"{spec.table} / {spec.model} / {spec.dataset}")
+                rows.append(
+                    unavailable_row(
+                        spec, ctx.not_trained_why(spec.job), kind="not_trained"
+                    ).to_dict()
+                )
+                continue
             ctx.train_dataset(spec.job)
         except DatasetUnavailable as err:
             log(f"row {spec.table} / {spec.model} / {spec.dataset}: dataset unavailable: {err}")

@@ -13,6 +13,7 @@ import copy
 import json
 import math
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -539,6 +540,38 @@ def test_no_train_scores_only_cached_models(tmp_path):
     by_model = {r["model"]: r for r in report["rows"] if r["source"] == "measured"}
     assert by_model["sVORF (ours)"]["metrics"]["fg_ari"] is not None
     assert by_model["sVORF (w/o SA)"]["metrics"]["fg_ari"] is None
+
+
+def test_a_model_that_may_not_train_needs_no_training_split_without_a_run(tmp_path):
+    m = ("fg_ari", "ari")
+    rows = [
+        MeasuredRow(
+            "tab:ab_apparance", "sVORF", "clevr567-heldout", ModelJob("full", "clevr567-heldout"), m
+        )
+    ]
+    train_split = tmp_path / "data" / "smoke" / "clevr567-heldout" / "train"
+
+    def ctx(**kw):
+        return Context(
+            "generalization", "smoke", tmp_path / "reports", tmp_path / "data",
+            data_source="synthetic", progress=False, train_steps=2, **kw,
+        )  # fmt: skip
+
+    report = json.loads(
+        run_table_protocol(ctx(no_train=True), ["tab:ab_apparance"], rows, None).read_text()
+    )
+    (row,) = [r for r in report["rows"] if r["source"] == "measured"]
+    assert row["metrics"]["fg_ari"] is None
+    assert row["null_reasons"]["fg_ari"].startswith("not_trained: --no-train")
+    assert not train_split.exists()  # nothing to hash: no run could be this model
+    run_table_protocol(ctx(), ["tab:ab_apparance"], rows, None)  # trains it
+    shutil.rmtree(train_split)
+    # A finished run of the same model: its split is made again to confirm the key.
+    report = json.loads(
+        run_table_protocol(ctx(no_train=True), ["tab:ab_apparance"], rows, None).read_text()
+    )
+    (row,) = [r for r in report["rows"] if r["source"] == "measured"]
+    assert row["metrics"]["fg_ari"] is not None and train_split.is_dir()
 
 
 def test_train_only_trains_the_named_variants_and_scores_cached_others(tmp_path):
