@@ -50,7 +50,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -500,6 +500,8 @@ def _train_step(
     scenes = smp.sample_scenes(cfg.batch_scenes, run.gen)
     stride = cfg.ray_stride(progress)
     batch = smp.sample(scenes, run.gen, share, with_input, cfg.pixel_jitter, stride)
+    if cfg.gray_scenes > 0:
+        batch = gray_some_scenes(batch, cfg.gray_scenes, run.gen)
     iterative = cfg.refine_train is not None and step >= cfg.nvs_warmup
     # The input views' pixels of the refinement, drawn for the whole global batch.
     inp = _input_pixels(smp.dataset, batch, cfg.refine_train[2], run.gen) if iterative else ()
@@ -545,6 +547,23 @@ def _train_step(
         run.probes.update(done, progress)
     run.last_loss = float(loss.detach())
     return lr, parts, gnorm
+
+
+#: Rec.601 luma weights, as ``generate``'s grayscale presets convert their renders.
+LUMA = (0.299, 0.587, 0.114)
+
+
+def gray_some_scenes(batch: RayBatch, p: float, gen: torch.Generator) -> RayBatch:
+    """``batch`` with each scene, by chance ``p`` (``TrainConfig.gray_scenes``), shown in
+    Rec.601 luma: its input view and its target rays, all three channels equal."""
+    pick = torch.rand(batch.scenes.shape[0], generator=gen) < p
+    if not bool(pick.any()):
+        return batch
+    w = torch.tensor(LUMA, dtype=batch.images.dtype)
+    images, target = batch.images.clone(), batch.target_rgb.clone()
+    images[pick] = torch.einsum("bchw,c->bhw", images[pick], w)[:, None].expand(-1, 3, -1, -1)
+    target[pick] = (target[pick] @ w)[..., None].expand(-1, -1, 3)
+    return replace(batch, images=images, target_rgb=target)
 
 
 def _distill_forward(run: _Run, batch: RayBatch) -> tuple[Any, Tensor, dict[str, Tensor]]:

@@ -120,6 +120,12 @@ class TrainConfig:
     between two pixel centres an edge is supervised rather than left to the fields'
     interpolation. Evaluation and rendering keep the centres. A lever
     (docs/notes/cpu_recipe.md)."""
+    gray_scenes: float = 0.0
+    """The chance that a training scene is shown colour-free for one step: its input view
+    and its target rays in Rec.601 luma (``0.299 R + 0.587 G + 0.114 B`` in all three
+    channels, as ``generate``'s clevr567-gray test split). 0 = never (the paper, which
+    trains on RGB only). Against the encoder's failure on grayscale test images, which
+    loses objects of every size and contrast. A lever (docs/notes/cpu_recipe.md)."""
     coarse_to_fine: tuple[int, float] | None = None
     """``(stride, until)``: uORF's coarse-to-fine. Before progress ``until`` (as for
     ``lr_decay``) every training ray goes through the centre of a ``stride`` x ``stride``
@@ -282,6 +288,12 @@ class TrainConfig:
                 "TrainConfig.pixel_jitter must be in [0, 1] (pixels; 0 = through the pixel "
                 f"centre, 1 = anywhere in the pixel), got {self.pixel_jitter}"
             )
+        object.__setattr__(self, "gray_scenes", float(self.gray_scenes))
+        if not 0.0 <= self.gray_scenes <= 1.0:
+            raise ValueError(
+                "TrainConfig.gray_scenes must be a probability in [0, 1] (0 = every scene in "
+                f"colour), got {self.gray_scenes}"
+            )
         if self.input_view_from is not None:
             object.__setattr__(self, "input_view_from", float(self.input_view_from))
             if not 0.0 <= self.input_view_from <= 1.0:
@@ -327,7 +339,7 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict of every field (``betas`` as a list), as checkpoints store it;
-        ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter``,
+        ``target_size``, ``salient_fade``, ``input_view_from``, ``pixel_jitter``, ``gray_scenes``,
         ``coarse_to_fine``, ``ema_decay``, ``enc_lr_scale``, ``lr_decay_from``,
         ``slot_distill``, ``refine_train`` and ``average_probes`` only when set, so that the keys of earlier
         runs stay valid."""
@@ -361,6 +373,8 @@ class TrainConfig:
             del d["input_view_from"]
         if not d["pixel_jitter"]:
             del d["pixel_jitter"]
+        if not d["gray_scenes"]:
+            del d["gray_scenes"]
         if d["coarse_to_fine"] is None:
             del d["coarse_to_fine"]
         else:

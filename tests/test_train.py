@@ -420,6 +420,34 @@ def test_pixel_jitter_reaches_the_sampler_and_is_keyed_only_when_on(split, tmp_p
         TrainConfig(pixel_jitter=1.5)
 
 
+def test_gray_scenes_shows_picked_scenes_in_luma_and_is_keyed_only_when_on(split, tmp_path):
+    """TrainConfig.gray_scenes: a picked scene's input view and target rays become Rec.601
+    luma in all three channels, the others stay as drawn; left out of the key while 0,
+    round-trips, refuses a chance outside [0, 1], and trains."""
+    from svorf.data import RaySampler
+    from svorf.train import LUMA, gray_some_scenes
+
+    assert "gray_scenes" not in tcfg().to_dict()
+    cfg = tcfg(steps=2, gray_scenes=0.5)
+    assert cfg.to_dict()["gray_scenes"] == 0.5
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    with pytest.raises(ValueError, match="gray_scenes must be a probability"):
+        TrainConfig(gray_scenes=1.5)
+    ds = MultiViewDataset(split, image_size=MCFG.image_size)
+    smp = RaySampler(ds, rays_per_scene=32, nvs=True)
+    batch = smp.sample(torch.arange(2), torch.Generator().manual_seed(0))
+    w = torch.tensor(LUMA)
+    all_gray = gray_some_scenes(batch, 1.0, torch.Generator().manual_seed(0))
+    luma = torch.einsum("bchw,c->bhw", batch.images, w)
+    for c in range(3):
+        assert torch.allclose(all_gray.images[:, c], luma)
+        assert torch.allclose(all_gray.target_rgb[..., c], batch.target_rgb @ w)
+    assert torch.equal(all_gray.rays_d, batch.rays_d)
+    assert gray_some_scenes(batch, 0.0, torch.Generator()) is batch
+    assert not torch.equal(all_gray.images, batch.images)  # the colour split is not gray
+    train(split, tmp_path / "gray", MCFG, cfg, progress=False)
+
+
 def test_coarse_to_fine_strides_the_early_batches_and_is_keyed_only_when_on(
     split, tmp_path, monkeypatch
 ):
