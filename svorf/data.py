@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
@@ -104,6 +104,7 @@ __all__ = [
     "ERROR_DRIVEN_FRACTION",
     "ERROR_DRIVEN_INIT",
     "ERROR_DRIVEN_TILE",
+    "LUMA",
     "OBJECT_HEAVY_FRACTION",
     "OBJECT_HEAVY_THRESHOLD",
     "RAY_SAMPLING",
@@ -119,6 +120,7 @@ __all__ = [
     "SceneViews",
     "contrast_pixels",
     "dataset_fingerprint",
+    "gray_some_scenes",
     "object_contrast_rays",
     "object_heavy_rays",
     "pixel_rays",
@@ -767,3 +769,20 @@ class RaySampler:
         centre = torch.full((len(flat), 2), (k - 1) / 2.0, dtype=torch.float64)
         rays_o, rays_d = ds.rays(s, views[vi], pix, centre)
         return rays_o, rays_d, views[vi], pix, mean.reshape(-1, 3)[flat] / 255.0
+
+
+#: Rec.601 luma weights, as ``generate``'s grayscale presets convert their renders.
+LUMA = (0.299, 0.587, 0.114)
+
+
+def gray_some_scenes(batch: RayBatch, p: float, gen: torch.Generator) -> RayBatch:
+    """``batch`` with each scene, by chance ``p`` (``TrainConfig.gray_scenes``), shown in
+    Rec.601 luma: its input view and its target rays, all three channels equal."""
+    pick = torch.rand(batch.scenes.shape[0], generator=gen) < p
+    if not bool(pick.any()):
+        return batch
+    w = torch.tensor(LUMA, dtype=batch.images.dtype)
+    images, target = batch.images.clone(), batch.target_rgb.clone()
+    images[pick] = torch.einsum("bchw,c->bhw", images[pick], w)[:, None].expand(-1, 3, -1, -1)
+    target[pick] = (target[pick] @ w)[..., None].expand(-1, -1, 3)
+    return replace(batch, images=images, target_rgb=target)

@@ -50,7 +50,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +74,13 @@ from svorf.checkpoint import (
     write_checkpoint,
 )
 from svorf.config import ModelConfig, bf16_autocast_on
-from svorf.data import MultiViewDataset, RayBatch, RaySampler, dataset_fingerprint
+from svorf.data import (
+    MultiViewDataset,
+    RayBatch,
+    RaySampler,
+    dataset_fingerprint,
+    gray_some_scenes,
+)
 from svorf.model import SVORF
 from svorf.optim import ProbeAverages, WeightAverage, grad_norm, make_optimizer, param_groups
 from svorf.predict import ScenePrediction, default_eval, predict_scene
@@ -547,23 +553,6 @@ def _train_step(
         run.probes.update(done, progress)
     run.last_loss = float(loss.detach())
     return lr, parts, gnorm
-
-
-#: Rec.601 luma weights, as ``generate``'s grayscale presets convert their renders.
-LUMA = (0.299, 0.587, 0.114)
-
-
-def gray_some_scenes(batch: RayBatch, p: float, gen: torch.Generator) -> RayBatch:
-    """``batch`` with each scene, by chance ``p`` (``TrainConfig.gray_scenes``), shown in
-    Rec.601 luma: its input view and its target rays, all three channels equal."""
-    pick = torch.rand(batch.scenes.shape[0], generator=gen) < p
-    if not bool(pick.any()):
-        return batch
-    w = torch.tensor(LUMA, dtype=batch.images.dtype)
-    images, target = batch.images.clone(), batch.target_rgb.clone()
-    images[pick] = torch.einsum("bchw,c->bhw", images[pick], w)[:, None].expand(-1, 3, -1, -1)
-    target[pick] = (target[pick] @ w)[..., None].expand(-1, -1, 3)
-    return replace(batch, images=images, target_rgb=target)
 
 
 def _distill_forward(run: _Run, batch: RayBatch) -> tuple[Any, Tensor, dict[str, Tensor]]:

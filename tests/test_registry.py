@@ -88,14 +88,16 @@ def test_config_key_names_what_is_learned():
     assert set(changed) == set(BOOKKEEPING_FIELDS)
     assert config_key(m, t.replace(**changed)) == key
     every = {f.name for f in dataclasses.fields(TrainConfig)} - set(BOOKKEEPING_FIELDS)
-    # target_size, salient_fade, input_view_from, pixel_jitter, coarse_to_fine, ema_decay,
-    # enc_lr_scale, lr_decay_from, slot_distill, refine_train and average_probes are written
-    # only when set, so the keys of earlier runs stay valid (the cpu recipe sets ema_decay)
+    # target_size, salient_fade, input_view_from, pixel_jitter, gray_scenes, coarse_to_fine,
+    # ema_decay, enc_lr_scale, lr_decay_from, slot_distill, refine_train and average_probes
+    # are written only when set, so the keys of earlier runs stay valid (the cpu recipe sets
+    # ema_decay)
     unset = {
         "target_size",
         "salient_fade",
         "input_view_from",
         "pixel_jitter",
+        "gray_scenes",
         "coarse_to_fine",
         "enc_lr_scale",
         "lr_decay_from",
@@ -110,6 +112,7 @@ def test_config_key_names_what_is_learned():
         target_size=128, salient_fade=(0.5, 0.7), input_view_from=0.5, pixel_jitter=1.0
     )
     assert set(learning_fields(finer)) == every - {
+        "gray_scenes",
         "coarse_to_fine",
         "enc_lr_scale",
         "lr_decay_from",

@@ -424,8 +424,7 @@ def test_gray_scenes_shows_picked_scenes_in_luma_and_is_keyed_only_when_on(split
     """TrainConfig.gray_scenes: a picked scene's input view and target rays become Rec.601
     luma in all three channels, the others stay as drawn; left out of the key while 0,
     round-trips, refuses a chance outside [0, 1], and trains."""
-    from svorf.data import RaySampler
-    from svorf.train import LUMA, gray_some_scenes
+    from svorf.data import LUMA, RaySampler, gray_some_scenes
 
     assert "gray_scenes" not in tcfg().to_dict()
     cfg = tcfg(steps=2, gray_scenes=0.5)
