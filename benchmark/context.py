@@ -335,7 +335,7 @@ class Context:
         """The split folder (generated if missing), timed under ``data``; at ``resolution``
         instead of the scale's when given (:func:`benchmark.datasets.at_resolution`)."""
         settings = at_resolution(self.settings, resolution)
-        k = (preset, split) if settings is self.settings else (preset, split, settings.resolution)
+        k = self._dataset_key(preset, split, settings)
         if k not in self.datasets:
             t = time.perf_counter()
             where = dataset_dir(self.data, settings.name, preset, split)
@@ -353,6 +353,12 @@ class Context:
             )
             self.timers["data"] += time.perf_counter() - t
         return self.datasets[k]
+
+    def _dataset_key(self, preset: str, split: str, settings: ScaleSettings) -> tuple[Any, ...]:
+        """Where :meth:`dataset` keeps a split of these ``settings`` in ``self.datasets``."""
+        if settings is self.settings:
+            return (preset, split)
+        return (preset, split, settings.resolution)
 
     def train_dataset(self, job: ModelJob) -> DatasetInfo:
         """``job``'s training split: the scale's, or the same scenes at the finer
@@ -414,10 +420,7 @@ class Context:
         if self.init_job(job) is not None:
             return False
         settings = at_resolution(self.settings, self.train_resolution(job))
-        k = (job.train_preset, "train")
-        if settings is not self.settings:
-            k = (*k, settings.resolution)
-        if k in self.datasets:
+        if self._dataset_key(job.train_preset, "train", settings) in self.datasets:
             return False
         state = split_state(
             self.data,

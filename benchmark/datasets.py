@@ -43,7 +43,15 @@ import numpy as np
 
 from benchmark import adapter
 from benchmark.scales import ScaleSettings
-from scenefmt import Manifest, SplitLayout, is_scene_complete, read_json, read_rgb, write_rgb
+from scenefmt import (
+    LUMA_REC601,
+    Manifest,
+    SplitLayout,
+    is_scene_complete,
+    read_json,
+    read_rgb,
+    write_rgb,
+)
 
 __all__ = [
     "DATA_SOURCES",
@@ -282,7 +290,7 @@ def _to_gray_inplace(root: Path, n_scenes: int, n_views: int) -> None:
     for s in range(n_scenes):
         for v in range(n_views):
             rgb = read_rgb(layout.rgb(s, v)).astype(np.float64)
-            y = 0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]
+            y = rgb @ np.array(LUMA_REC601)
             y8 = np.clip(np.round(y), 0, 255).astype(np.uint8)
             write_rgb(layout.rgb(s, v), np.repeat(y8[..., None], 3, axis=2))
 

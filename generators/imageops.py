@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from scenefmt import LUMA_REC601
+
 GRAYSCALE_FORMULA = (
     "Y = 0.299 R + 0.587 G + 0.114 B (Rec.601 luma) on the 8-bit sRGB values, "
     "rounded half to even, stored in all 3 channels"
@@ -53,6 +55,6 @@ def grayscale_rec601(rgb8: np.ndarray) -> np.ndarray:
     rgb8 = np.asarray(rgb8)
     if rgb8.dtype != np.uint8 or rgb8.ndim != 3 or rgb8.shape[2] != 3:
         raise ValueError(f"rgb8 must be uint8 [H, W, 3], got {rgb8.dtype} {rgb8.shape}")
-    y = rgb8.astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    y = rgb8.astype(np.float64) @ np.array(LUMA_REC601)
     y8 = np.clip(np.rint(y), 0, 255).astype(np.uint8)
     return np.repeat(y8[..., None], 3, axis=2)

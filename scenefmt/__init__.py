@@ -46,6 +46,7 @@ from scenefmt.io import (
 )
 from scenefmt.layout import (
     FORMAT_VERSION,
+    LUMA_REC601,
     MANIP_MASK_OFF,
     MANIP_MASK_ON,
     MANIP_SPLIT,
@@ -73,6 +74,7 @@ from scenefmt.records import (
 
 __all__ = [
     "FORMAT_VERSION",
+    "LUMA_REC601",
     "MANIFEST_FORMAT",
     "MANIP_MASK_OFF",
     "MANIP_MASK_ON",

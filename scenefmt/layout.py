@@ -28,6 +28,10 @@ MASK_BG_LEVEL = 16
 MASK_STEP = 18
 MAX_INSTANCES = (255 - MASK_BG_LEVEL) // MASK_STEP  # 13
 
+#: The grayscale presets' pixels (``clevr567-gray``): Rec.601 luma ``Y = 0.299 R + 0.587 G
+#: + 0.114 B`` of the 8-bit sRGB values, stored in all three channels.
+LUMA_REC601 = (0.299, 0.587, 0.114)
+
 _STEM_RE = re.compile(r"^(?P<idx>\d{5})_sc(?P<scene>\d{4})_az(?P<view>\d{2})$")
 
 

@@ -57,6 +57,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from scenefmt import (
+    LUMA_REC601,
     DatasetError,
     Manifest,
     SceneRecord,
@@ -104,7 +105,6 @@ __all__ = [
     "ERROR_DRIVEN_FRACTION",
     "ERROR_DRIVEN_INIT",
     "ERROR_DRIVEN_TILE",
-    "LUMA",
     "OBJECT_HEAVY_FRACTION",
     "OBJECT_HEAVY_THRESHOLD",
     "RAY_SAMPLING",
@@ -771,17 +771,13 @@ class RaySampler:
         return rays_o, rays_d, views[vi], pix, mean.reshape(-1, 3)[flat] / 255.0
 
 
-#: Rec.601 luma weights, as ``generate``'s grayscale presets convert their renders.
-LUMA = (0.299, 0.587, 0.114)
-
-
 def gray_some_scenes(batch: RayBatch, p: float, gen: torch.Generator) -> RayBatch:
     """``batch`` with each scene, by chance ``p`` (``TrainConfig.gray_scenes``), shown in
     Rec.601 luma: its input view and its target rays, all three channels equal."""
     pick = torch.rand(batch.scenes.shape[0], generator=gen) < p
     if not bool(pick.any()):
         return batch
-    w = torch.tensor(LUMA, dtype=batch.images.dtype)
+    w = torch.tensor(LUMA_REC601, dtype=batch.images.dtype)
     images, target = batch.images.clone(), batch.target_rgb.clone()
     images[pick] = torch.einsum("bchw,c->bhw", images[pick], w)[:, None].expand(-1, 3, -1, -1)
     target[pick] = (target[pick] @ w)[..., None].expand(-1, -1, 3)

@@ -424,7 +424,8 @@ def test_gray_scenes_shows_picked_scenes_in_luma_and_is_keyed_only_when_on(split
     """TrainConfig.gray_scenes: a picked scene's input view and target rays become Rec.601
     luma in all three channels, the others stay as drawn; left out of the key while 0,
     round-trips, refuses a chance outside [0, 1], and trains."""
-    from svorf.data import LUMA, RaySampler, gray_some_scenes
+    from scenefmt import LUMA_REC601
+    from svorf.data import RaySampler, gray_some_scenes
 
     assert "gray_scenes" not in tcfg().to_dict()
     cfg = tcfg(steps=2, gray_scenes=0.5)
@@ -435,7 +436,7 @@ def test_gray_scenes_shows_picked_scenes_in_luma_and_is_keyed_only_when_on(split
     ds = MultiViewDataset(split, image_size=MCFG.image_size)
     smp = RaySampler(ds, rays_per_scene=32, nvs=True)
     batch = smp.sample(torch.arange(2), torch.Generator().manual_seed(0))
-    w = torch.tensor(LUMA)
+    w = torch.tensor(LUMA_REC601)
     all_gray = gray_some_scenes(batch, 1.0, torch.Generator().manual_seed(0))
     luma = torch.einsum("bchw,c->bhw", batch.images, w)
     for c in range(3):

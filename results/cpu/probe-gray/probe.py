@@ -22,10 +22,11 @@ import torch
 
 from benchmark.tools.failures import object_failures, render_input_view
 from benchmark.tools.rim import dilate
+from scenefmt import LUMA_REC601
 from svorf.data import MultiViewDataset
 from svorf.train import load_run
 
-LUMA = torch.tensor([0.299, 0.587, 0.114])
+LUMA = torch.tensor(LUMA_REC601)
 
 run, rgb_split, gray_split, out = Path(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4]
 torch.set_num_threads(int(sys.argv[5]) if len(sys.argv) > 5 else 2)
