@@ -415,8 +415,9 @@ class Context:
     def no_cached_run(self, job: ModelJob) -> bool:
         """True when no finished run in ``<out>/runs`` can be ``job``'s model and its
         training split is not on disk: a run that may not train it then needs neither
-        (generating 1,000 scenes only to hash them would find nothing). Runs started from
-        another model's weights are always looked up the full way."""
+        (generating 1,000 scenes only to hash them would find nothing). A run whose marker
+        names another training preset is not a match, even with the same settings. Runs
+        started from another model's weights are always looked up the full way."""
         if self.init_job(job) is not None:
             return False
         settings = at_resolution(self.settings, self.train_resolution(job))
@@ -435,9 +436,14 @@ class Context:
         want = json.loads(json.dumps({**self._key_source(job, None), "dataset": None}))
         for marker in sorted((self.out / "runs").glob("*/benchmark_run.json")):
             try:
-                src = json.loads(marker.read_text()).get("key_source")
+                payload = json.loads(marker.read_text())
             except (OSError, ValueError):
                 continue
+            if not isinstance(payload, dict):
+                continue
+            src, made_for = payload.get("key_source"), payload.get("job")
+            if isinstance(made_for, dict) and made_for.get("train_preset") != job.train_preset:
+                continue  # the same settings trained on another preset's split
             if isinstance(src, dict) and {**src, "dataset": None} == want:
                 return False
         return True

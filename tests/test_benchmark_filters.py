@@ -274,3 +274,30 @@ def test_a_model_that_asks_for_finer_targets_trains_on_its_own_finer_split(tmp_p
     assert model["steps_done"] == 2
     measured = [r for r in report["rows"] if r["source"] == "measured"]
     assert measured and all(r["metrics"]["fg_ari"] is not None for r in measured)
+
+
+def test_a_finished_run_of_another_training_preset_is_not_taken_for_a_cached_run(tmp_path):
+    # CLEVR-567 and its held-out-appearance twin train with the same settings; only the
+    # marker's job says which split a run was trained on, and a run trained on one must
+    # not make a --no-train pass render the other's training split to look for it.
+    ctx = Context(
+        "generalization",
+        "smoke",
+        tmp_path / "reports",
+        tmp_path / "data",
+        data_source="synthetic",
+        progress=False,
+    )
+    clevr, heldout = ModelJob("full", "clevr567"), ModelJob("full", "clevr567-heldout")
+    assert ctx.no_cached_run(clevr) and ctx.no_cached_run(heldout)
+    src = ctx._key_source(clevr, "fingerprint-of-the-clevr567-split")
+    assert {**src, "dataset": None} == {**ctx._key_source(heldout, None), "dataset": None}
+    run = ctx.out / "runs" / "abc"
+    run.mkdir(parents=True)
+    payload = {"key": "abc", "key_source": src, "job": vars(clevr)}
+    (run / "benchmark_run.json").write_text(json.dumps(payload))
+    assert not ctx.no_cached_run(clevr)
+    assert ctx.no_cached_run(heldout)
+    # A marker without its job (written before markers named it) may still be a match.
+    (run / "benchmark_run.json").write_text(json.dumps({"key": "abc", "key_source": src}))
+    assert not ctx.no_cached_run(heldout)
