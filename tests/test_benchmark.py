@@ -25,6 +25,7 @@ from benchmark.cli import main as cli_main
 from benchmark.html import chromium_binary, render_screenshot, write_index
 from benchmark.leaderboard import format_leaderboard, merge_reports
 from benchmark.paper_numbers import PAPER_TABLES, paper_rows
+from benchmark.protocols.tables import PACKED_CONTROL
 from benchmark.report import RowStore, new_report, write_report
 from benchmark.runner import Context, MeasuredRow, ModelJob, run_table_protocol
 from benchmark.schema import SchemaError, check_report, validate_report
@@ -920,5 +921,16 @@ def test_smoke_protocol_with_generator_presets(tmp_path, protocol):
                 assert "measured" in sources, (t, prow["model"])
     assert report["status"] == "complete"
     assert all(r["n_scenes"] >= 1 for r in report["rows"] if r["source"] != "paper")
+    if protocol == "generalization":
+        # The control not in the paper: the CLEVR-567 model on the packed scenes, measured
+        # with a verdict of its own and no paper row beside it.
+        control = [r for r in report["rows"] if r["model"] == PACKED_CONTROL]
+        assert [(r["source"], r["dataset"], r["variant"]) for r in control] == [
+            ("measured", "packed-clevr11", "full")
+        ]
+        assert (
+            control[0]["metrics"]["fg_ari"] is not None and "not in the paper" in control[0]["note"]
+        )
+        assert any(v["model"] == PACKED_CONTROL for v in report["verdicts"])
     assert report["datasets"] and all(d["source"] == "generator" for d in report["datasets"])
     assert (folder / "index.html").is_file() and report["figures"]
