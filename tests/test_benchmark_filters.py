@@ -219,9 +219,12 @@ def test_cpu_scale_takes_the_recipe_for_the_clevr_family_only():
     # ablation variants on top of the recipe
     assert adapter.model_config("cpu", "clevr567", "wo_sa") == rm.replace(self_attention=False)
     pm, _ = recipe_configs("packed-clevr11")
-    assert adapter.model_config("cpu", "clevr567", "packed11") == pm.replace(
-        num_slots=11, slot_mask_train=4
-    )
+    # The packed setting: 11 slots; the cpu recipe masks none in training, the paper 4.
+    assert adapter.model_config("cpu", "clevr567", "packed11") == pm
+    assert (pm.num_slots, pm.slot_mask_train) == (11, 0)
+    assert pm == rm.replace(num_slots=11)
+    paper = adapter.model_config("paper", "clevr567", "packed11")
+    assert (paper.num_slots, paper.slot_mask_train) == (11, 4)
     assert adapter.config_source("cpu", "clevr567-heldout") == adapter.RECIPE_CONFIG_SOURCE
     # Room presets at cpu, and smoke / paper everywhere, keep svorf's scale configs.
     assert adapter.model_config("cpu", "room-chair") == run_configs("cpu", "room-chair")[0]
