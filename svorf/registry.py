@@ -172,8 +172,8 @@ _CPU_RECIPE = Recipe(
         # for the 8-slot presets; docs/notes/cpu_recipe.md, 2026-12-06, seventy-second
         # session). The paper masks 4 of the 11 at random per step against slot collapse;
         # at this scale that model lost to the plain 8-slot one on the packed scenes. The
-        # 60-minute packed model without the masking scored FG-ARI 76.0 / SEED3 on
-        # packed-CLEVR-11 at seeds 2 / 3 against 59.1 / 59.5 with it (ARI 75.3 / SEED3A
+        # 60-minute packed model without the masking scored FG-ARI 76.0 / 78.0 on
+        # packed-CLEVR-11 at seeds 2 / 3 against 59.1 / 59.5 with it (ARI 75.3 / 73.4
         # against 67.0 / 68.7), and crossed the line of "decomposes" at both.
         "slot_mask_train": 0,
     },
