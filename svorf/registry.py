@@ -58,7 +58,8 @@ class PresetSpec:
 
 #: Training presets. The paper's K per dataset (appendix A): 8 for CLEVR-567, 5 for the
 #: Room datasets; the packed-CLEVR-11 setting trains on CLEVR-567 with 11 slots, 4 of them
-#: masked off per step (none at the ``cpu`` scale, whose recipe masks no slots). "synthetic" is the test split of ``svorf.synthetic`` (2-3 spheres).
+#: masked off per step (none at the ``cpu`` scale, whose recipe masks no slots).
+#: "synthetic" is the test split of ``svorf.synthetic`` (2-3 spheres).
 PRESETS: dict[str, PresetSpec] = {
     "clevr567": PresetSpec(8, ("clevr567",)),
     "clevr567-heldout": PresetSpec(8, ("clevr567-heldout",)),

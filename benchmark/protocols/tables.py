@@ -359,8 +359,8 @@ def run_generalization(ctx: Context) -> Path:
       trained on clevr567/train, tested on the same split.
     - tab:ab_num: 11 slots with 4 masked off per training step (none at the cpu
       scale), trained on clevr567/train, tested on packed-clevr11/test with all 11
-      slots; and a control
-      not in the paper (:data:`PACKED_CONTROL`): the clevr567 model on the same scenes.
+      slots; and a control not in the paper (:data:`PACKED_CONTROL`): the clevr567
+      model on the same scenes.
     - text:rgb_color: the clevr567 model on clevr567-gray/test, and on the RGB
       clevr567/test for comparison.
     """
