@@ -9,7 +9,8 @@ holds. Every name is re-exported by ``svorf.train``, the old home of these names
 ``checkpoint.pt`` (format :data:`CHECKPOINT_FORMAT`) is a ``torch.save`` dict: ``format``,
 ``step``, ``model`` and ``optimizer`` state dicts, ``rng`` (global torch, CUDA and the data
 generator's states), ``model_config`` / ``train_config`` as JSON dicts, ``dataset``
-(fingerprint, root, scene count, image size, preset), ``wall_s``, ``loss``,
+(fingerprint, root, scene count, image size, preset), ``wall_s``, ``max_wall_s`` (the
+run's training-time budget, None for a run stopped by its steps alone), ``loss``,
 ``torch_version``, and when used ``error_map`` (the ``"error_driven"`` ray sampling's
 state), ``init_from`` and ``model_ema`` (the moving average of ``TrainConfig.ema_decay``, a
 state dict of the model). It is written atomically (temp file + ``os.replace``), so the
@@ -43,8 +44,10 @@ __all__ = [
     "RunInfo",
     "atomic_torch_save",
     "check_resumable",
+    "check_resumable_budget",
     "init_weights_from",
     "load_run",
+    "progress_schedules",
     "read_checkpoint",
     "render_probe",
     "restore_checkpoint",
@@ -76,6 +79,19 @@ RENDER_PROBE_FIELDS = (
 
 #: Fields that may differ between a checkpoint and the config that resumes it.
 _RESUMABLE_CHANGES = {"steps", "log_every", "ckpt_every", "eval_every", "eval_scenes", "device"}
+
+#: Model config fields whose effect follows the run's progress (``SVORF.set_progress``).
+_PROGRESS_MODEL_FIELDS = (
+    "bg_chroma_fade",
+    "slot_locality_narrow",
+    "fg_mass",
+    "fg_binary",
+    "ray_distortion",
+    "photo_l1",
+)
+#: Train config fields whose effect follows the run's progress (the step's rays, views
+#: and learning rate).
+_PROGRESS_TRAIN_FIELDS = ("salient_fade", "input_view_from", "coarse_to_fine")
 
 
 class CheckpointError(ValueError):
@@ -178,6 +194,7 @@ def write_checkpoint(
     dataset: dict[str, Any],
     wall_s: float,
     loss: float,
+    max_wall_s: float | None = None,
     error_map: ErrorMap | None = None,
     init_from: dict[str, Any] | None = None,
     model_ema: dict[str, Any] | None = None,
@@ -190,6 +207,7 @@ def write_checkpoint(
         gen: the data generator (its state and the global ones: :func:`rng_state`).
         dataset: ``fingerprint``, ``root``, ``n_scenes``, ``image_hw``, ``preset``.
         wall_s: the run's training wall time so far; loss: the last step's loss.
+        max_wall_s: the run's training-time budget (None: its steps alone stop it).
         error_map: the ``"error_driven"`` ray sampling's state, when used.
         init_from: what :func:`init_weights_from` loaded at step 0, when used.
         model_ema: the averaged weights (a model state dict), when kept.
@@ -207,6 +225,7 @@ def write_checkpoint(
             "train_config": train_cfg.to_dict(),
             "dataset": dataset,
             "wall_s": wall_s,
+            "max_wall_s": max_wall_s,
             "loss": loss,
             "torch_version": str(torch.__version__),
             **({"error_map": error_map.state_dict()} if error_map is not None else {}),
@@ -252,6 +271,53 @@ def check_resumable(
         raise CheckpointError(
             f"{path}: the data in {data_dir} differs from the run's training data "
             f"(fingerprint {str(fp)[:12]} vs {fingerprint[:12]})"
+        )
+
+
+def progress_schedules(model_cfg: ModelConfig, train_cfg: TrainConfig) -> list[str]:
+    """The config fields set in ``model_cfg`` / ``train_cfg`` whose effect follows the
+    run's progress (its step over ``steps``, or its training time over the budget)."""
+    model, train = model_cfg.to_dict(), train_cfg.to_dict()
+    fields = [k for k in _PROGRESS_MODEL_FIELDS if model.get(k) is not None]
+    fields += [k for k in _PROGRESS_TRAIN_FIELDS if train.get(k) is not None]
+    if train.get("lr_decay", "none") != "none":
+        fields.append("lr_decay")
+    return fields
+
+
+def _budget_words(max_wall_s: float | None) -> str:
+    return "no time budget" if max_wall_s is None else f"a {max_wall_s:g} s budget"
+
+
+def check_resumable_budget(
+    ckpt: dict[str, Any],
+    path: Path,
+    model_cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    max_wall_s: float | None,
+) -> None:
+    """Refuse to resume ``ckpt`` under another training-time budget than it was trained
+    with when the configs hold schedules that follow the run's progress: the budget is
+    the progress's denominator, so the schedules would jump back and run again (a
+    finished 60-minute run resumed under 120 minutes would replay its second half). A
+    checkpoint written before budgets were recorded is not checked.
+
+    Raises:
+        CheckpointError: one line naming both budgets, the schedules and the way out.
+    """
+    if "max_wall_s" not in ckpt:
+        return
+    old = ckpt["max_wall_s"]
+    old = None if old is None else float(old)
+    if old == max_wall_s:
+        return
+    fields = progress_schedules(model_cfg, train_cfg)
+    if fields:
+        raise CheckpointError(
+            f"{path}: trained under {_budget_words(old)}, resumed under "
+            f"{_budget_words(max_wall_s)}; its schedules that follow the run's progress "
+            f"({', '.join(fields)}) would start again. Resume with the budget it was "
+            "trained with, or start a new run from its weights (init_from)"
         )
 
 

@@ -67,6 +67,7 @@ from svorf.checkpoint import (
     RunInfo,
     atomic_torch_save,
     check_resumable,
+    check_resumable_budget,
     init_weights_from,
     load_run,
     read_checkpoint,
@@ -216,6 +217,7 @@ def train(
         svorf.data.DatasetError: an invalid data folder.
     """
     run = _setup(data_dir, out_dir, model_cfg, train_cfg, eval_data, max_scenes, resume)
+    run.max_wall_s = max_wall_s
     _start(run, resume, data_dir, init_from)
     cfg = run.train_cfg
     bar = _progress_bar(run) if progress and run.main else None
@@ -287,6 +289,8 @@ class _Run:
     start: int = 0
     wall_offset: float = 0.0
     """Training wall time of the earlier calls of a resumed run."""
+    max_wall_s: float | None = None
+    """The run's training-time budget (``train(max_wall_s=...)``), saved in checkpoints."""
     last_loss: float = math.nan
     init_info: dict[str, Any] | None = None
     saved: int | None = None
@@ -456,6 +460,7 @@ def _resume(run: _Run, data_dir: str | os.PathLike) -> None:
     check_resumable(
         ckpt, run.ckpt_path, run.model_cfg, run.train_cfg, run.dataset.fingerprint, data_dir
     )
+    check_resumable_budget(ckpt, run.ckpt_path, run.model_cfg, run.train_cfg, run.max_wall_s)
     restore_checkpoint(ckpt, run.ckpt_path, run.model, run.opt, run.gen, run.device, run.error_map)
     run.start, run.wall_offset = int(ckpt["step"]), float(ckpt.get("wall_s", 0.0))
     run.last_loss = float(ckpt.get("loss", math.nan))
@@ -736,6 +741,7 @@ def _save(run: _Run, step: int, wall: float) -> None:
         dataset=run.data_info,
         wall_s=wall,
         loss=run.last_loss,
+        max_wall_s=run.max_wall_s,
         error_map=run.error_map,
         init_from=run.init_info,
         model_ema=run.average.state_dict(run.model.state_dict()) if run.average else None,

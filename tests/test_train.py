@@ -258,6 +258,26 @@ def test_resume_refuses_a_different_run(split, tmp_path):
         train(split, run, MCFG, tcfg(steps=2, lr=0.5), resume=True, progress=False)
 
 
+def test_resume_refuses_another_budget_when_schedules_follow_the_progress(split, tmp_path):
+    # The budget is the progress's denominator: a finished 60-minute run resumed under 120
+    # minutes would replay its schedules from their middle.
+    sched = MCFG.replace(photo_l1=(0.5, 0.7))
+    run = tmp_path / "run"
+    train(split, run, sched, tcfg(steps=1), progress=False, max_wall_s=3600.0)
+    assert torch.load(run / "checkpoint.pt", weights_only=True)["max_wall_s"] == 3600.0
+    with pytest.raises(CheckpointError, match=r"3600 s budget.*7200 s budget.*\(photo_l1\)"):
+        train(split, run, sched, tcfg(steps=2), resume=True, progress=False, max_wall_s=7200.0)
+    with pytest.raises(CheckpointError, match=r"3600 s budget.*no time budget"):
+        train(split, run, sched, tcfg(steps=2), resume=True, progress=False)
+    train(split, run, sched, tcfg(steps=2), resume=True, progress=False, max_wall_s=3600.0)
+    assert [r["step"] for r in _log(run)][-1] == 2
+    # Without such schedules a run may be resumed under another budget (or none).
+    plain = tmp_path / "plain"
+    train(split, plain, MCFG, tcfg(steps=1), progress=False, max_wall_s=3600.0)
+    train(split, plain, MCFG, tcfg(steps=2), resume=True, progress=False)
+    assert [r["step"] for r in _log(plain)][-1] == 2
+
+
 def test_resume_a_checkpoint_saved_before_a_config_field_existed(split, tmp_path):
     """A model-config field added after the checkpoint was written takes its default (the
     behaviour the run was trained with): resuming is not a config mismatch."""
