@@ -118,7 +118,8 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         metavar="M",
         help="stop after M minutes of training wall time (checkpoint kept; --resume "
-        "continues); with --steps 1000000 this is how `benchmark --train-minutes M` trains",
+        "continues, with the same M where the config has progress-driven schedules); "
+        "with --steps 1000000 this is how `benchmark --train-minutes M` trains",
     )
     t.add_argument(
         "--init-from",
