@@ -244,12 +244,16 @@ def check_resumable(
     train_cfg: TrainConfig,
     fingerprint: str,
     data_dir: str | os.PathLike,
+    *,
+    max_wall_s: float | None,
 ) -> None:
     """Refuse to resume the checkpoint ``ckpt`` (read from ``path``) with other configs
     or other data: the model config must be equal, the train config equal but for the
-    bookkeeping fields (steps, logging, checkpoint and eval cadence, device), and the
+    bookkeeping fields (steps, logging, checkpoint and eval cadence, device), the
     training data's ``fingerprint`` the checkpoint's (or, for a checkpoint written before
-    fingerprints rounded their numbers, the data's :func:`scenefmt.legacy_fingerprint`).
+    fingerprints rounded their numbers, the data's :func:`scenefmt.legacy_fingerprint`),
+    and the training-time budget ``max_wall_s`` the checkpoint's where schedules follow
+    the run's progress (:func:`check_resumable_budget`).
 
     Raises:
         CheckpointError: one line naming the fields that differ, or the data mismatch.
@@ -272,6 +276,7 @@ def check_resumable(
             f"{path}: the data in {data_dir} differs from the run's training data "
             f"(fingerprint {str(fp)[:12]} vs {fingerprint[:12]})"
         )
+    check_resumable_budget(ckpt, path, model_cfg, train_cfg, max_wall_s)
 
 
 def progress_schedules(model_cfg: ModelConfig, train_cfg: TrainConfig) -> list[str]:

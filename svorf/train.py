@@ -13,7 +13,7 @@ wall-time ``Budget`` live in ``svorf.run_records``.
 A run folder holds::
 
     checkpoint.pt   latest good state (atomic temp + os.replace): model, optimizer, step,
-                    RNG states, configs as JSON dicts, dataset fingerprint
+                    RNG states, configs as JSON dicts, dataset fingerprint, budget
     config.json     the same configs, for people
     log.jsonl       one line per logged step: step, wall_s, lr, loss, parts, steps_per_s
     eval.jsonl      one line per held-out evaluation: step, wall_s, metrics
@@ -30,8 +30,8 @@ checkpoint (:func:`_save`), all timed by the wall-time budget (:class:`Budget`);
 Determinism: parameters are initialised after ``torch.manual_seed(seed)``; scenes,
 input views and rays come from a ``torch.Generator`` seeded with ``seed``; the model's
 own randomness (stratified sampling jitter, the packed-11 slot mask) uses the global
-torch RNG. All of these states are checkpointed, so ``resume=True`` continues the
-uninterrupted run step for step (bit-identical on the same machine and device).
+torch RNG. All of these states are checkpointed, so ``resume=True`` (same budget) goes on
+as the uninterrupted run step for step (bit-identical on the same machine and device).
 
 Data parallel: under ``torchrun`` (a process group initialised by ``svorf.cli`` through
 ``svorf.distributed.init_from_env``) :func:`train` splits every step's global batch of
@@ -67,7 +67,6 @@ from svorf.checkpoint import (
     RunInfo,
     atomic_torch_save,
     check_resumable,
-    check_resumable_budget,
     init_weights_from,
     load_run,
     read_checkpoint,
@@ -289,8 +288,7 @@ class _Run:
     start: int = 0
     wall_offset: float = 0.0
     """Training wall time of the earlier calls of a resumed run."""
-    max_wall_s: float | None = None
-    """The run's training-time budget (``train(max_wall_s=...)``), saved in checkpoints."""
+    max_wall_s: float | None = None  # train(max_wall_s=...): the budget, kept in checkpoints
     last_loss: float = math.nan
     init_info: dict[str, Any] | None = None
     saved: int | None = None
@@ -457,10 +455,8 @@ def _resume(run: _Run, data_dir: str | os.PathLike) -> None:
     """Restore the checkpoint of the run folder after checking that it is this run's
     (configs, data); drop log lines written after it."""
     ckpt = read_checkpoint(run.ckpt_path)
-    check_resumable(
-        ckpt, run.ckpt_path, run.model_cfg, run.train_cfg, run.dataset.fingerprint, data_dir
-    )
-    check_resumable_budget(ckpt, run.ckpt_path, run.model_cfg, run.train_cfg, run.max_wall_s)
+    check_resumable(ckpt, run.ckpt_path, run.model_cfg, run.train_cfg, run.dataset.fingerprint,
+                    data_dir, max_wall_s=run.max_wall_s)  # fmt: skip
     restore_checkpoint(ckpt, run.ckpt_path, run.model, run.opt, run.gen, run.device, run.error_map)
     run.start, run.wall_offset = int(ckpt["step"]), float(ckpt.get("wall_s", 0.0))
     run.last_loss = float(ckpt.get("loss", math.nan))
