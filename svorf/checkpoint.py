@@ -29,10 +29,12 @@ from typing import Any
 import torch
 
 from scenefmt import default_file_mode, legacy_fingerprint
+from svorf.config import PROGRESS_FIELDS as MODEL_PROGRESS_FIELDS
 from svorf.config import ModelConfig
 from svorf.model import SVORF
 from svorf.optim import parse_probe
 from svorf.ray_sampling import ErrorMap
+from svorf.train_config import PROGRESS_FIELDS as TRAIN_PROGRESS_FIELDS
 from svorf.train_config import TrainConfig
 
 __all__ = [
@@ -79,19 +81,6 @@ RENDER_PROBE_FIELDS = (
 
 #: Fields that may differ between a checkpoint and the config that resumes it.
 _RESUMABLE_CHANGES = {"steps", "log_every", "ckpt_every", "eval_every", "eval_scenes", "device"}
-
-#: Model config fields whose effect follows the run's progress (``SVORF.set_progress``).
-_PROGRESS_MODEL_FIELDS = (
-    "bg_chroma_fade",
-    "slot_locality_narrow",
-    "fg_mass",
-    "fg_binary",
-    "ray_distortion",
-    "photo_l1",
-)
-#: Train config fields whose effect follows the run's progress (the step's rays, views
-#: and learning rate).
-_PROGRESS_TRAIN_FIELDS = ("salient_fade", "input_view_from", "coarse_to_fine")
 
 
 class CheckpointError(ValueError):
@@ -283,8 +272,8 @@ def progress_schedules(model_cfg: ModelConfig, train_cfg: TrainConfig) -> list[s
     """The config fields set in ``model_cfg`` / ``train_cfg`` whose effect follows the
     run's progress (its step over ``steps``, or its training time over the budget)."""
     model, train = model_cfg.to_dict(), train_cfg.to_dict()
-    fields = [k for k in _PROGRESS_MODEL_FIELDS if model.get(k) is not None]
-    fields += [k for k in _PROGRESS_TRAIN_FIELDS if train.get(k) is not None]
+    fields = [k for k in MODEL_PROGRESS_FIELDS if model.get(k) is not None]
+    fields += [k for k in TRAIN_PROGRESS_FIELDS if train.get(k) is not None]
     if train.get("lr_decay", "none") != "none":
         fields.append("lr_decay")
     return fields

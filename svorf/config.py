@@ -516,6 +516,19 @@ def ramp(progress: float, p0: float, p1: float) -> float:
     return (progress - p0) / (p1 - p0)
 
 
+#: Fields whose effect follows the run's progress: ``SVORF.set_progress`` reads these (and
+#: ``slot_locality``, the radius ``slot_locality_narrow`` starts from) and no others, which a
+#: test checks. Resuming a run under another time budget would replay them
+#: (``svorf.checkpoint.check_resumable_budget``).
+PROGRESS_FIELDS: tuple[str, ...] = (
+    "bg_chroma_fade",
+    "slot_locality_narrow",
+    "fg_mass",
+    "fg_binary",
+    "ray_distortion",
+    "photo_l1",
+)
+
 #: Tuple fields (JSON gives lists) and their form, for checks and messages.
 _TUPLES = {
     "bg_chroma_fade": "(p0, p1)",

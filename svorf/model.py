@@ -493,7 +493,8 @@ class SVORF(nn.Module):
         buffer, ``slot_locality_narrow``'s ``locality_radius``, ``fg_mass``'s
         ``fg_mass_weight``, ``fg_binary``'s ``fg_binary_weight``, ``ray_distortion``'s
         ``ray_distortion_weight``, ``photo_l1``'s ``photo_l1_weight``). The training loop calls
-        it before every step; a no-op without such fields."""
+        it before every step; a no-op without such fields. A new such field goes into
+        ``svorf.config.PROGRESS_FIELDS`` too (a test checks), which the resume guard reads."""
         fade = self.cfg.bg_chroma_fade
         if fade is not None:
             self.bg_chroma.fill_(1.0 - ramp(progress, *fade))

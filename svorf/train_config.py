@@ -42,6 +42,7 @@ __all__ = [
     "CPU_RECIPE_PRESETS",
     "LR_DECAYS",
     "PRESETS",
+    "PROGRESS_FIELDS",
     "SCALES",
     "PresetSpec",
     "TrainConfig",
@@ -57,6 +58,13 @@ __all__ = [
 
 #: Learning-rate schedules after warm-up (``TrainConfig.lr_decay``).
 LR_DECAYS = ("none", "cosine")
+
+#: Fields whose effect follows the run's progress through the rays and views of a step
+#: (:meth:`TrainConfig.salient_share`, :meth:`~TrainConfig.input_view_targeted`,
+#: :meth:`~TrainConfig.ray_stride`, which read these and no others, as a test checks); the
+#: learning rate follows it too when ``lr_decay`` is not ``"none"``. Resuming a run under
+#: another time budget would replay them (``svorf.checkpoint.check_resumable_budget``).
+PROGRESS_FIELDS: tuple[str, ...] = ("salient_fade", "input_view_from", "coarse_to_fine")
 
 
 @dataclass(frozen=True)

@@ -278,6 +278,35 @@ def test_resume_refuses_another_budget_when_schedules_follow_the_progress(split,
     assert [r["step"] for r in _log(plain)][-1] == 2
 
 
+class _Reads:
+    """A config stand-in that records which fields are read."""
+
+    def __init__(self, cfg) -> None:
+        self._cfg, self.names = cfg, set()
+
+    def __getattr__(self, name):
+        self.names.add(name)
+        return getattr(self._cfg, name)
+
+
+def test_the_resume_guard_knows_every_schedule_that_follows_the_progress():
+    # The guard's lists are the fields the progress-driven code reads, no more, no fewer.
+    from svorf.config import PROGRESS_FIELDS as MODEL_FIELDS
+    from svorf.train_config import PROGRESS_FIELDS as TRAIN_FIELDS
+
+    model = SVORF(MCFG)
+    model.cfg = reads = _Reads(model.cfg)
+    for p in (0.0, 0.5, 1.0):
+        model.set_progress(p)
+    assert reads.names - {"slot_locality"} == set(MODEL_FIELDS)
+    reads = _Reads(tcfg())
+    for p in (0.0, 0.5, 1.0):
+        TrainConfig.salient_share(reads, p)
+        TrainConfig.input_view_targeted(reads, p)
+        TrainConfig.ray_stride(reads, p)
+    assert reads.names == set(TRAIN_FIELDS)
+
+
 def test_resume_a_checkpoint_saved_before_a_config_field_existed(split, tmp_path):
     """A model-config field added after the checkpoint was written takes its default (the
     behaviour the run was trained with): resuming is not a config mismatch."""
