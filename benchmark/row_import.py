@@ -37,6 +37,7 @@ from typing import Any
 
 from benchmark.datasets import DatasetInfo
 from benchmark.evaluate import EvalResult
+from benchmark.report import stable_hash
 from benchmark.rows import MeasuredRow, measured_row, row_metrics
 from benchmark.schema import REPORT_KIND
 
@@ -93,6 +94,26 @@ class _Evaluation:
     details: dict[str, Any] = field(default_factory=dict)
 
 
+def _context_difference(theirs: str, context: dict[str, Any] | None, report: dict[str, Any]) -> str:
+    """What differs between a report's row context ``theirs`` and this run's ``context``,
+    where one change to the latter gives the former: LPIPS availability or the seeds."""
+    if context is not None:
+        if stable_hash({**context, "lpips": not context.get("lpips")}) == theirs:
+            if context.get("lpips"):
+                return "that report was scored without LPIPS weights, this run has them"
+            return (
+                "that report was scored with LPIPS weights, which this machine lacks (run "
+                "`benchmark lpips-weights`, or pass --lpips-weights FILE)"
+            )
+        seeds = report.get("seeds")
+        if seeds != context.get("seeds") and stable_hash({**context, "seeds": seeds}) == theirs:
+            return f"that report is of seeds {seeds}, this run of {context.get('seeds')}"
+    return (
+        "other scale settings, seeds, evaluation version, dataset fingerprint scheme, "
+        "--steps or LPIPS availability"
+    )
+
+
 class ImportedRows:
     """The measured scores of earlier reports that a run with ``context_hash`` may take.
 
@@ -100,9 +121,16 @@ class ImportedRows:
         reports: ``(path, report)`` pairs from :func:`read_reports`, in priority order
             (the first report holding a (model key, test data) pair supplies it).
         context_hash: this run's row context (``RowStore.context_hash``).
+        context: what that hash is of (the ``RowStore`` context); when given, a refusal
+            names the difference where it is one of LPIPS availability or the seeds.
     """
 
-    def __init__(self, reports: list[tuple[str, dict[str, Any]]], context_hash: str) -> None:
+    def __init__(
+        self,
+        reports: list[tuple[str, dict[str, Any]]],
+        context_hash: str,
+        context: dict[str, Any] | None = None,
+    ) -> None:
         self.evals: dict[tuple[str, str], _Evaluation] = {}
         self.models: dict[str, dict[str, Any]] = {}
         #: Why reports (or parts of them) were not used; for the report's notes.
@@ -113,9 +141,8 @@ class ImportedRows:
                 why = (
                     "written before reports recorded their row context"
                     if theirs is None
-                    else f"row context {theirs}, this run's {context_hash}: other scale "
-                    "settings, seeds, evaluation version, dataset fingerprint scheme, --steps "
-                    "or LPIPS availability"
+                    else f"row context {theirs}, this run's {context_hash}: "
+                    + _context_difference(theirs, context, report)
                 )
                 self.refused.append(f"{path}: none of its rows taken ({why})")
                 continue

@@ -123,6 +123,7 @@ def test_a_report_of_other_settings_gives_no_rows_and_says_why(tmp_path, first, 
     assert row["n_scenes"] == 0 and "imported_from" not in row
     (note,) = [n for n in report["notes"] if n.startswith("--rows-from:")]
     assert "none of its rows taken" in note and "row context" in note
+    assert "that report is of seeds {'data': 0" in note  # the difference, named
 
 
 def test_a_report_without_row_context_gives_no_rows(tmp_path, first, monkeypatch):
@@ -225,6 +226,21 @@ def test_imported_scores_merge_within_a_report_and_the_first_report_wins():
         is None
     )
     assert imported.row(spec, "k2", test) is None
+
+
+def test_a_refusal_names_lpips_availability_when_that_is_the_difference():
+    from benchmark.report import stable_hash
+    from benchmark.row_import import ImportedRows
+
+    here = {"scale": "cpu", "seeds": {"data": 0, "train": 0, "eval": 0}, "lpips": False}
+    for lpips_there, says in ((True, "run `benchmark lpips-weights`"), (False, "has them")):
+        ctx = {**here, "lpips": not lpips_there}
+        there = _report_with([], context=stable_hash({**ctx, "lpips": lpips_there}))
+        (refused,) = ImportedRows([("r.json", there)], stable_hash(ctx), ctx).refused
+        assert says in refused
+    other = _report_with([], context=stable_hash({**here, "scale": "paper"}))
+    (refused,) = ImportedRows([("r.json", other)], stable_hash(here), here).refused
+    assert "other scale settings" in refused  # not one of the differences it can name
 
 
 def test_step_rate_note_names_the_slowest_and_fastest_models_only_past_the_spread():
