@@ -5,7 +5,8 @@ files (every protocol writes one), validates each against the schema, keeps the
 newest row per (protocol, scale, table, model, dataset, source, training seed of a
 measured row, data seed of a baseline's test scenes), preferring a measured row whose
 model has the configs the recipe gives today (``current_recipe``) over a lever's or an
-older recipe's, and writes ``DIR/leaderboard.json``. The printed table puts every
+older recipe's, and a model of a minute budget trained at the recipe's speed over one
+trained on a slower machine (``slow_machine``), and writes ``DIR/leaderboard.json``. The printed table puts every
 measured and baseline row under the paper's rows of the same table, formatted by
 :mod:`benchmark.display` and at most :data:`WIDTH` columns wide. ``leaderboard.json``
 keeps the reports' stored values (ARI family in percent, like ``report.json``).
@@ -32,6 +33,7 @@ from benchmark.display import (
 from benchmark.html import metric_columns
 from benchmark.paper_numbers import PAPER_TABLES
 from benchmark.report import utc_now, write_json
+from benchmark.row_import import recipe_rate_note
 from benchmark.schema import SchemaError, validate_report
 
 __all__ = [
@@ -40,6 +42,7 @@ __all__ = [
     "current_recipe",
     "format_leaderboard",
     "merge_reports",
+    "slow_machine",
 ]
 
 LEADERBOARD_SCHEMA_VERSION = "1.0"
@@ -68,11 +71,25 @@ def _budget(report: dict[str, Any]) -> str | None:
     return budget
 
 
-def _rank(entry: dict[str, Any]) -> tuple[bool, bool, str]:
+def _rank(entry: dict[str, Any]) -> tuple[bool, bool, bool, str]:
     """Order of preference of two rows with the same key: measured numbers, then the
-    current recipe's model (or not known), then newest."""
+    current recipe's model (or not known), then a model not trained on a machine slower
+    than the recipe's (``slow_machine``: a minute budget gave it fewer steps), then newest."""
     has_value = any(v is not None for v in (entry.get("metrics") or {}).values())
-    return has_value, entry.get("current_recipe") is not False, entry["created_utc"]
+    return (
+        has_value,
+        entry.get("current_recipe") is not False,
+        not entry.get("slow_machine", False),
+        entry["created_utc"],
+    )
+
+
+def slow_machine(report: dict[str, Any], row: dict[str, Any]) -> bool:
+    """Whether a measured row's model is a recipe model trained under a minute budget
+    on a machine slower than the recipe's (:func:`benchmark.row_import.recipe_rate_note`):
+    its steps, not the recipe, set its numbers."""
+    model = [m for m in report.get("models") or [] if m.get("run_key") == row.get("run_key")]
+    return recipe_rate_note(model) is not None
 
 
 #: Run fields that differ between runs of one recipe (the seed, the step limit).
@@ -181,6 +198,8 @@ def merge_reports(root: str | os.PathLike, write: bool = True) -> dict[str, Any]
                 entry["data_seed"] = data_seed
             if src == "measured":
                 entry["current_recipe"] = current_recipe(report, row)
+                if slow_machine(report, row):
+                    entry["slow_machine"] = True
             # The newest row wins, except that a row without numbers (not trained, failed,
             # data unavailable) never replaces one with numbers, and a lever's (or an older
             # recipe's) model never replaces the current recipe's.
@@ -234,7 +253,8 @@ def _wrap(text: str, width: int, indent: str = "") -> list[str]:
 def _source(r: dict[str, Any]) -> str:
     """Who the row's numbers come from: ``paper``, ``cpu seed 0, 60 min`` (measured at a
     scale, training seed and budget per model; ``, earlier recipe`` where the model's
-    configs are not the ones the recipe gives today) or ``cpu baseline, data 1`` (a chance
+    configs are not the ones the recipe gives today; ``, slow machine`` where a minute
+    budget's model trained slower than the recipe's) or ``cpu baseline, data 1`` (a chance
     baseline, on the test scenes of data seed 1)."""
     if r["source"] == "paper":
         return "paper"
@@ -243,6 +263,7 @@ def _source(r: dict[str, Any]) -> str:
         return f"{r['scale']} baseline{scenes}"
     label = f"{r['scale']} seed {r['seed']}" if r.get("seed") is not None else str(r["scale"])
     label = f"{label}, {r['budget']}" if r.get("budget") else label
+    label = f"{label}, slow machine" if r.get("slow_machine") else label
     return f"{label}, earlier recipe" if r.get("current_recipe") is False else label
 
 
@@ -361,7 +382,9 @@ def format_leaderboard(board: dict[str, Any], width: int = WIDTH) -> str:
             *_wrap(
                 "source: 'paper' = the paper's number; '<scale> seed N' = measured here at "
                 "that scale with training seed N ('earlier recipe': a model whose configs "
-                "are not the ones `benchmark run` gives today); '<scale> baseline, data N' = a "
+                "are not the ones `benchmark run` gives today; 'slow machine': a minute "
+                "budget's model trained at under 0.8x the recipe's steps per minute); "
+                "'<scale> baseline, data N' = a "
                 "chance baseline computed here on the test scenes of data seed N. An empty "
                 "cell: the row has no such metric.",
                 width,

@@ -365,6 +365,32 @@ def test_leaderboard_prefers_the_current_recipe_over_a_newer_lever(tmp_path):
     assert "cpu seed 0, earlier recipe" not in format_leaderboard(board)
 
 
+def test_leaderboard_prefers_the_recipe_speed_over_a_newer_run_on_a_slower_machine(tmp_path):
+    # One recipe, seed and 60-minute budget: a machine at half the recipe's steps per minute
+    # gives the same run key fewer steps, and its newer row does not replace the other.
+    def budgeted(created: str, steps: int) -> dict:
+        rep = _recipe_report(created)
+        rep["scale_settings"]["train_minutes"] = 60.0
+        rep["models"][0].update(
+            config_source="svorf.train.run_configs (cpu recipe)",
+            steps_done=steps,
+            train_wall_s=3600.0,
+            train_budget={"minutes": 60.0, "max_wall_s": 3600.0},
+        )
+        return rep
+
+    write_report(tmp_path / "fast" / "report.json", budgeted("2025-01-01T00:00:00Z", 25_744))
+    write_report(tmp_path / "slow" / "report.json", budgeted("2025-02-01T00:00:00Z", 13_068))
+    board = merge_reports(tmp_path)
+    (measured,) = [e for e in board["entries"] if e["source"] == "measured"]
+    assert measured["report"] == str(Path("fast") / "report.json")
+    assert "slow_machine" not in measured
+    (tmp_path / "fast" / "report.json").unlink()  # alone, the slow row shows, marked
+    (measured,) = [e for e in merge_reports(tmp_path)["entries"] if e["source"] == "measured"]
+    assert measured["slow_machine"] is True
+    assert "seed 0, 60 min, slow machine" in format_leaderboard(merge_reports(tmp_path))
+
+
 # ---------------------------------------------------------------------- evaluation
 
 
