@@ -6,9 +6,9 @@ newest row per (protocol, scale, table, model, dataset, source, training seed of
 measured row, data seed of a baseline's test scenes), preferring a measured row whose
 model has the configs the recipe gives today (``current_recipe``) over a lever's or an
 older recipe's, and a model of a minute budget trained at the recipe's speed over one
-trained on a slower machine (``slow_machine``), and writes ``DIR/leaderboard.json``. The printed table puts every
-measured and baseline row under the paper's rows of the same table, formatted by
-:mod:`benchmark.display` and at most :data:`WIDTH` columns wide. ``leaderboard.json``
+trained on a slower machine (``slow_machine``), and writes ``DIR/leaderboard.json``. The
+printed table puts every measured and baseline row under the paper's rows of the same
+table, formatted by :mod:`benchmark.display` and at most :data:`WIDTH` columns wide. ``leaderboard.json``
 keeps the reports' stored values (ARI family in percent, like ``report.json``).
 """
 

@@ -164,9 +164,11 @@ def run_table_protocol(
     # The row context goes into the report, so that a later run can take its rows
     # (--rows-from) only where they are the numbers it would compute.
     report["row_context"] = store.context_hash
-    imported = ImportedRows(ctx.rows_from, store.context_hash, store_ctx) if ctx.rows_from else None
-    for why in imported.refused if imported is not None else ():
-        log(f"--rows-from {why}")  # now, before hours of training, as well as in the notes
+    imported = None
+    if ctx.rows_from:
+        imported = ImportedRows(ctx.rows_from, store.context_hash, store_ctx)
+        for why in imported.refused:  # now, before hours of training, and in the notes
+            log(f"--rows-from {why}")
     taken: list[str] = []
     rows: list[dict[str, Any]] = []
     for t in tables:
