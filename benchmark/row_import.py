@@ -40,6 +40,11 @@ from benchmark.evaluate import EvalResult
 from benchmark.report import stable_hash
 from benchmark.rows import MeasuredRow, measured_row, row_metrics
 from benchmark.schema import REPORT_KIND
+from svorf.registry import SCALES as SVORF_SCALES
+
+_CPU_RECIPE = SVORF_SCALES["cpu"].recipe
+assert _CPU_RECIPE is not None and _CPU_RECIPE.steps_per_minute is not None
+_CPU_RECIPE_RATES = _CPU_RECIPE.steps_per_minute
 
 __all__ = [
     "RECIPE_STEPS_PER_MINUTE",
@@ -240,8 +245,9 @@ def step_rate_note(models: list[dict[str, Any]], spread: float = 1.25) -> str | 
 #: Training speeds (steps per minute, alone on 2 cores) at which the cpu recipe's CLEVR-567
 #: results were measured: 25,606-25,744 steps in 60 minutes and 51,282-52,765 in 120 (seeds
 #: 0 and 1, 2026-11-30; docs/notes/cpu_recipe.md). The 120-minute models, at about twice the
-#: steps, scored FG-ARI 1.0-5.2 points above the 60-minute ones.
-RECIPE_STEPS_PER_MINUTE = (427.0, 440.0)
+#: steps, scored FG-ARI 1.0-5.2 points above the 60-minute ones. The recipe's own record
+#: (``svorf.registry.Recipe.steps_per_minute``), which ``svorf train`` checks early.
+RECIPE_STEPS_PER_MINUTE: tuple[float, float] = _CPU_RECIPE_RATES
 
 
 def recipe_rate_note(models: list[dict[str, Any]], below: float = 0.8) -> str | None:

@@ -80,6 +80,11 @@ class Recipe:
         model: ``ModelConfig`` fields.
         presets: training presets (keys of :data:`PRESETS`) that get it.
         doc: where it is measured and argued.
+        steps_per_minute: the training speeds (optimizer steps per minute of training wall
+            time, one run alone on 2 cores) at which its minute budgets were measured; a
+            time-budgeted run of the recipe's model that trains much slower says so early
+            (``svorf.train``), since under a minute budget fewer steps score lower. None:
+            not measured.
     """
 
     name: str
@@ -87,6 +92,7 @@ class Recipe:
     model: dict[str, Any]
     presets: tuple[str, ...]
     doc: str = ""
+    steps_per_minute: tuple[float, float] | None = None
 
     @property
     def fields(self) -> dict[str, Any]:
@@ -180,6 +186,11 @@ _CPU_RECIPE = Recipe(
     },
     presets=("clevr567", "clevr567-heldout", "packed-clevr11"),
     doc="docs/notes/cpu_recipe.md",
+    # CLEVR-567 at seeds 0 and 1 (2026-11-30, an AMD EPYC with AVX-512 and native bf16):
+    # 25,606-25,744 steps in 60 minutes, 51,282-52,765 in 120. Seeds 2 and 3 and the other
+    # recipe presets trained at 411-469 on such machines; on an AVX2-only CPU (float32) the
+    # same model made 218, and at its 13,068 steps the 60-minute model did not decompose.
+    steps_per_minute=(427.0, 440.0),
 )
 
 #: The scales. Sizes the paper leaves open are argued in ``svorf.config.model_config``.

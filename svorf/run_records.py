@@ -2,7 +2,8 @@
 
 :class:`TrainSummary` (``summary.json``), :class:`TrainingDiverged` (what the NaN guards
 raise), the ``log.jsonl`` / ``eval.jsonl`` helpers, the process's peak memory and
-:class:`Budget`, the training wall time of a time-budgeted run. The loop that uses them is
+:class:`Budget`, the training wall time of a time-budgeted run, with :class:`RateCheck`, its
+early word on a machine slower than its recipe's. The loop that uses them is
 ``svorf.train``, which re-exports the two public classes.
 """
 
@@ -146,3 +147,58 @@ class Budget:
         tp = time.perf_counter()
         yield
         self.paused += time.perf_counter() - tp
+
+
+@dataclass(frozen=True)
+class RateCheck:
+    """A time-budgeted run's early check of its speed against its recipe's.
+
+    Under a minute budget the machine decides how many steps a run makes, and fewer steps
+    score lower. ``svorf.train`` measures a call's steps per minute once, after ``after_s``
+    seconds of its training, and prints :meth:`note` when the speed is under ``below`` x
+    the slowest speed the recipe was measured at, so the user learns it at once instead of
+    from a weaker result at the end.
+
+    Attributes:
+        recipe: the recipe's name ("cpu recipe").
+        expected: steps per minute at which its minute budgets were measured (slowest,
+            fastest; ``svorf.registry.Recipe.steps_per_minute``).
+        float32_here: whether the recipe's bf16 autocast (``"auto"``) resolves to float32
+            on this device, as on a CPU without native bf16.
+        after_s: seconds of training before the speed is measured.
+        below: the fraction of the slowest expected speed under which it speaks.
+    """
+
+    recipe: str
+    expected: tuple[float, float]
+    float32_here: bool = False
+    after_s: float = 180.0
+    below: float = 0.8
+
+    @staticmethod
+    def probe_seconds(max_wall_s: float) -> float:
+        """When to measure: 5% of the budget, within 1 to 5 minutes."""
+        return min(300.0, max(60.0, 0.05 * max_wall_s))
+
+    def note(self, steps_per_minute: float, max_wall_s: float, projected: int) -> str | None:
+        """The warning for a call training at ``steps_per_minute`` whose budget is
+        ``max_wall_s`` seconds and which will have made about ``projected`` steps by its
+        end; None at or above ``below`` x the slowest expected speed."""
+        lo, hi = self.expected
+        if steps_per_minute >= self.below * lo:
+            return None
+        minutes = max_wall_s / 60.0
+        recipe_steps = int(round((lo + hi) / 2.0 * minutes, -2))
+        here = (
+            " on CPUs with native bf16; this one has none, so it trains in float32"
+            if self.float32_here
+            else ""
+        )
+        return (
+            f"{steps_per_minute:.0f} steps per minute here, so this {minutes:.3g}-minute budget "
+            f"makes about {projected:,} steps. The {self.recipe}'s results were measured at "
+            f"{lo:.0f}-{hi:.0f} steps per minute (about {recipe_steps:,} steps in "
+            f"{minutes:.3g} minutes){here}. Fewer steps score lower: for the recipe's step "
+            f"count, give --steps {recipe_steps} instead of the minute budget (about "
+            f"{recipe_steps / steps_per_minute:.0f} minutes here)."
+        )

@@ -51,6 +51,7 @@ __all__ = [
     "learning_fields",
     "lr_at",
     "recipe_applies",
+    "recipe_of",
     "resolve_device",
     "run_configs",
     "train_config",
@@ -533,6 +534,27 @@ def run_configs(
     if scale_recipe is not None:
         mcfg, tcfg = apply_recipe(mcfg, tcfg, recipe=scale_recipe)
     return mcfg, tcfg.replace(**train_overrides)
+
+
+def recipe_of(mcfg: ModelConfig, tcfg: TrainConfig) -> Recipe | None:
+    """The recipe whose model these configs train, at its scale's image size (None: none).
+
+    The configs are a recipe's when the model config is that of a ``svorf train --scale S
+    --preset P`` run of a recipe preset and the train config differs from its at most in
+    the step count and the seed (what ``--steps``, ``--seed`` and ``benchmark
+    --train-minutes`` change). A variant of the recipe (an ablation, another resolution)
+    costs another amount per step, so its speed says nothing about the recipe's.
+    """
+    same = {k: v for k, v in learning_fields(tcfg).items() if k not in ("steps", "seed")}
+    for scale, spec in registry.SCALES.items():
+        if spec.recipe is None:
+            continue
+        for preset in spec.recipe.presets:
+            ref_m, ref_t = run_configs(scale, preset)
+            ref = {k: v for k, v in learning_fields(ref_t).items() if k not in ("steps", "seed")}
+            if mcfg == ref_m and same == ref:
+                return spec.recipe
+    return None
 
 
 def learning_fields(tcfg: TrainConfig) -> dict[str, Any]:

@@ -743,3 +743,53 @@ def test_refine_train_renders_from_refined_slots_and_resumes(split, tmp_path):
             tcfg(refine_train=bad)
     with pytest.raises(ValueError, match="one of them"):
         tcfg(refine_train=(2, 2e-2, 16), slot_distill=(1.0, 2, 1e-2))
+
+
+def test_recipe_of_names_the_recipes_model_and_not_its_variants():
+    from svorf.train_config import recipe_of
+
+    for preset in ("clevr567", "clevr567-heldout", "packed-clevr11"):
+        m, t = run_configs("cpu", preset)
+        # --steps, --seed and benchmark --train-minutes change only these
+        assert recipe_of(m, t.replace(steps=1_000_000, seed=3)).name == "cpu recipe"
+    m, t = run_configs("cpu", "clevr567")
+    assert recipe_of(m.replace(image_size=128), t) is None  # another cost per step
+    assert recipe_of(m.replace(hypernetwork=False), t) is None  # an ablation
+    assert recipe_of(m, t.replace(rays_per_scene=256)) is None
+    assert recipe_of(*run_configs("cpu", "room-chair")) is None  # no recipe there
+    assert recipe_of(*run_configs("cpu", "clevr567", recipe=False)) is None
+    assert recipe_of(*run_configs("smoke", "clevr567")) is None
+
+
+def test_rate_check_note_projects_the_budget_and_names_the_step_budget():
+    from svorf.run_records import RateCheck
+
+    check = RateCheck("cpu recipe", (427.0, 440.0), float32_here=True)
+    # The 60-minute command on an AVX2-only CPU: 218 steps per minute, 13,068 steps.
+    note = check.note(218.0, 3600.0, 13_068)
+    assert "218 steps per minute here" in note and "about 13,068 steps" in note
+    assert "427-440 steps per minute" in note and "float32" in note
+    assert "--steps 26000" in note and "about 119 minutes here" in note
+    assert check.note(0.8 * 427.0, 3600.0, 20_000) is None  # near the recipe's speed
+    assert "float32" not in RateCheck("r", (427.0, 440.0)).note(100.0, 7200.0, 12_000)
+    assert RateCheck.probe_seconds(3600.0) == 180.0
+    assert RateCheck.probe_seconds(600.0) == 60.0 and RateCheck.probe_seconds(1e5) == 300.0
+
+
+def test_a_slow_time_budgeted_recipe_run_says_so_once_early(split, tmp_path, monkeypatch, capsys):
+    import svorf.train as st
+    from svorf.registry import Recipe
+    from svorf.run_records import RateCheck
+
+    # The smoke model stands in for a recipe's, measured at an impossible speed.
+    fast = Recipe("test recipe", {}, {}, ("synthetic",), steps_per_minute=(1e9, 1e9))
+    monkeypatch.setattr(st, "recipe_of", lambda m, t: fast)
+    monkeypatch.setattr(RateCheck, "probe_seconds", staticmethod(lambda s: 0.0))
+    train(split, tmp_path / "budget", MCFG, tcfg(steps=4), progress=False, max_wall_s=3600.0)
+    err = capsys.readouterr().err
+    assert err.count("steps per minute here") == 1, err
+    assert "test recipe's results were measured at 1000000000-1000000000" in err
+    assert "about 4 steps" in err  # the run's steps cap the projection
+    # No budget, no check: a step budget makes the same steps on any machine.
+    train(split, tmp_path / "steps", MCFG, tcfg(steps=4), progress=False)
+    assert "steps per minute here" not in capsys.readouterr().err
