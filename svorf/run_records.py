@@ -100,6 +100,31 @@ def truncate_jsonl(path: Path, max_step: int) -> None:
     atomic_write_bytes(path, "".join(x + "\n" for x in keep).encode())
 
 
+def log_step(
+    path: Path,
+    done: int,
+    wall: float,
+    lr: float,
+    loss: float,
+    parts: dict[str, Any],
+    gnorm: Any,
+    steps_per_s: float,
+) -> None:
+    """Append step ``done``'s line to the run's ``log.jsonl`` at ``path``."""
+    append_jsonl(
+        path,
+        {
+            "step": done,
+            "wall_s": round(wall, 3),
+            "lr": lr,
+            "loss": loss,
+            "parts": {k: float(v) for k, v in parts.items()},
+            "steps_per_s": round(steps_per_s, 4),
+            "grad_norm": float(gnorm),
+        },
+    )
+
+
 def append_jsonl(path: Path, row: dict[str, Any]) -> None:
     """Append one JSON line (keys sorted) to ``log.jsonl`` or ``eval.jsonl``."""
     with open(path, "a") as f:
@@ -155,22 +180,24 @@ class RateCheck:
 
     Under a minute budget the machine decides how many steps a run makes, and fewer steps
     score lower. ``svorf.train`` measures a call's steps per minute once, after ``after_s``
-    seconds of its training, and prints :meth:`note` when the speed is under ``below`` x
-    the slowest speed the recipe was measured at, so the user learns it at once instead of
-    from a weaker result at the end.
+    seconds of its training, and prints :meth:`note_at` when the speed is under ``below``
+    x the slowest speed the recipe was measured at, so the user learns it at once instead
+    of from a weaker result at the end.
 
     Attributes:
         recipe: the recipe's name ("cpu recipe").
         expected: steps per minute at which its minute budgets were measured (slowest,
             fastest; ``svorf.registry.Recipe.steps_per_minute``).
+        max_wall_s: the run's training-time budget in seconds.
         float32_here: whether the recipe's bf16 autocast (``"auto"``) resolves to float32
             on this device, as on a CPU without native bf16.
-        after_s: seconds of training before the speed is measured.
+        after_s: seconds of the call's training before the speed is measured.
         below: the fraction of the slowest expected speed under which it speaks.
     """
 
     recipe: str
     expected: tuple[float, float]
+    max_wall_s: float
     float32_here: bool = False
     after_s: float = 180.0
     below: float = 0.8
@@ -180,14 +207,37 @@ class RateCheck:
         """When to measure: 5% of the budget, within 1 to 5 minutes."""
         return min(300.0, max(60.0, 0.05 * max_wall_s))
 
-    def note(self, steps_per_minute: float, max_wall_s: float, projected: int) -> str | None:
-        """The warning for a call training at ``steps_per_minute`` whose budget is
-        ``max_wall_s`` seconds and which will have made about ``projected`` steps by its
-        end; None at or above ``below`` x the slowest expected speed."""
+    def speak(
+        self, done: int, start: int, wall: float, wall_offset: float, limit: int, bar: Any = None
+    ) -> bool:
+        """At training wall time ``wall`` (step ``done``; this call started at step
+        ``start`` and wall time ``wall_offset``; step limit ``limit``): False before
+        ``after_s`` seconds of the call's training, else print :meth:`note` of the call's
+        speed on stderr (above the progress bar ``bar``), if it has one, and return True."""
+        call_s = wall - wall_offset
+        if call_s < self.after_s:
+            return False
+        if done <= start or call_s <= 0:
+            return True
+        rate = (done - start) / call_s * 60.0
+        projected = min(limit, done + int(rate / 60.0 * max(self.max_wall_s - wall, 0.0)))
+        note = self.note(rate, projected)
+        if note is not None:
+            msg = f"svorf train: {note}"
+            if bar is not None:
+                bar.write(msg, file=sys.stderr)
+            else:
+                print(msg, file=sys.stderr, flush=True)
+        return True
+
+    def note(self, steps_per_minute: float, projected: int) -> str | None:
+        """The warning for a run training at ``steps_per_minute`` that will have made about
+        ``projected`` steps at the end of its budget; None at or above ``below`` x the
+        slowest expected speed."""
         lo, hi = self.expected
         if steps_per_minute >= self.below * lo:
             return None
-        minutes = max_wall_s / 60.0
+        minutes = self.max_wall_s / 60.0
         recipe_steps = int(round((lo + hi) / 2.0 * minutes, -2))
         here = (
             " on CPUs with native bf16; this one has none, so it trains in float32"
@@ -202,3 +252,26 @@ class RateCheck:
             f"count, give --steps {recipe_steps} instead of the minute budget (about "
             f"{recipe_steps / steps_per_minute:.0f} minutes here)."
         )
+
+
+def recipe_rate_check(
+    model_cfg: Any, train_cfg: Any, device: Any, max_wall_s: float | None, main: bool = True
+) -> RateCheck | None:
+    """The early speed check of a time-budgeted run of a recipe's model; None without a
+    budget, off the main process, or for a model whose speed was not measured (not a
+    recipe's, or a variant of one: ``svorf.train_config.recipe_of``)."""
+    from svorf.config import bf16_autocast_on
+    from svorf.train_config import recipe_of
+
+    if max_wall_s is None or not main:
+        return None
+    recipe = recipe_of(model_cfg, train_cfg)
+    if recipe is None or recipe.steps_per_minute is None:
+        return None
+    return RateCheck(
+        recipe.name,
+        recipe.steps_per_minute,
+        max_wall_s,
+        float32_here=model_cfg.bf16_autocast == "auto" and not bf16_autocast_on("auto", device),
+        after_s=RateCheck.probe_seconds(max_wall_s),
+    )

@@ -48,7 +48,6 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -89,11 +88,12 @@ from svorf.ray_sampling import ErrorMap
 from svorf.refine import refine_batch
 from svorf.run_records import (
     Budget,
-    RateCheck,
     TrainingDiverged,
     TrainSummary,
     append_jsonl,
+    log_step,
     peak_rss_mb,
+    recipe_rate_check,
     truncate_jsonl,
 )
 from svorf.train_config import (
@@ -111,7 +111,6 @@ from svorf.train_config import (
     learning_fields,
     lr_at,
     recipe_applies,
-    recipe_of,
     resolve_device,
     run_configs,
     train_config,
@@ -227,7 +226,7 @@ def train(
     budget = Budget(run.wall_offset, max_wall_s)
     last_log_t, last_log_step = budget.t0, run.start
     params = [p for p in run.model.parameters() if p.requires_grad]
-    rate_check = _rate_check(run, max_wall_s)
+    rate_check = recipe_rate_check(run.model_cfg, cfg, run.device, max_wall_s, run.main)
     try:
         for step in range(run.start, cfg.steps):
             lr, parts, gnorm = _train_step(run, step, budget.progress(step, cfg.steps), params)
@@ -240,12 +239,13 @@ def train(
             if run.dctx is not None and max_wall_s is not None:  # all ranks stop at one step
                 wall = distributed.all_reduce_max(wall, run.device)
             out_of_time = budget.spent(wall)
-            if rate_check is not None and wall - run.wall_offset >= rate_check.after_s:
-                _say_rate(run, rate_check, done, wall, bar)
-                rate_check = None
+            if rate_check is not None and rate_check.speak(
+                done, run.start, wall, run.wall_offset, cfg.steps, bar
+            ):
+                rate_check = None  # once
             if run.main and (done % cfg.log_every == 0 or done == cfg.steps or out_of_time):
                 sps = (done - last_log_step) / max(now - last_log_t, 1e-9)
-                _log_step(run, done, wall, lr, parts, gnorm, sps)
+                log_step(run.log_path, done, wall, lr, run.last_loss, parts, gnorm, sps)
                 last_log_t, last_log_step = now, done
             with budget.paused_while():  # eval and checkpoint time is not training time
                 if run.eval_ds is not None and done % cfg.eval_every == 0:
@@ -480,41 +480,6 @@ def _resume(run: _Run, data_dir: str | os.PathLike) -> None:
         truncate_jsonl(run.eval_path, run.start)
 
 
-def _rate_check(run: _Run, max_wall_s: float | None) -> RateCheck | None:
-    """The early speed check of a time-budgeted run of a recipe's model (None otherwise:
-    no budget, not the main process, a model whose speed was not measured)."""
-    if max_wall_s is None or not run.main:
-        return None
-    recipe = recipe_of(run.model_cfg, run.train_cfg)
-    if recipe is None or recipe.steps_per_minute is None:
-        return None
-    auto = run.model_cfg.bf16_autocast == "auto"
-    return RateCheck(
-        recipe.name,
-        recipe.steps_per_minute,
-        float32_here=auto and not bf16_autocast_on("auto", run.device),
-        after_s=RateCheck.probe_seconds(max_wall_s),
-    )
-
-
-def _say_rate(run: _Run, check: RateCheck, done: int, wall: float, bar: Any) -> None:
-    """Print ``check``'s note (stderr) for this call's speed so far, if it has one."""
-    max_wall_s = run.max_wall_s
-    trained = wall - run.wall_offset
-    if max_wall_s is None or trained <= 0 or done <= run.start:
-        return
-    rate = (done - run.start) / trained * 60.0
-    projected = min(run.train_cfg.steps, done + int(rate / 60.0 * max(max_wall_s - wall, 0.0)))
-    note = check.note(rate, max_wall_s, projected)
-    if note is None:
-        return
-    msg = f"svorf train: {note}"
-    if bar is not None:
-        bar.write(msg, file=sys.stderr)
-    else:
-        print(msg, file=sys.stderr, flush=True)
-
-
 def _progress_bar(run: _Run) -> Any:
     """A tqdm bar over the run's steps (stderr)."""
     from tqdm import tqdm
@@ -720,30 +685,6 @@ def _kept(run: _Run) -> str:
     if run.saved is None:
         return "no checkpoint was written yet"
     return f"{run.ckpt_path} keeps the last good state (step {run.saved})"
-
-
-def _log_step(
-    run: _Run,
-    done: int,
-    wall: float,
-    lr: float,
-    parts: dict[str, Tensor],
-    gnorm: Tensor,
-    steps_per_s: float,
-) -> None:
-    """Append step ``done``'s line to ``log.jsonl``."""
-    append_jsonl(
-        run.log_path,
-        {
-            "step": done,
-            "wall_s": round(wall, 3),
-            "lr": lr,
-            "loss": run.last_loss,
-            "parts": {k: float(v) for k, v in parts.items()},
-            "steps_per_s": round(steps_per_s, 4),
-            "grad_norm": float(gnorm),
-        },
-    )
 
 
 def _run_eval(run: _Run, eval_fn: EvalFn | None, step: int, wall: float) -> None:

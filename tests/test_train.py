@@ -761,29 +761,36 @@ def test_recipe_of_names_the_recipes_model_and_not_its_variants():
     assert recipe_of(*run_configs("smoke", "clevr567")) is None
 
 
-def test_rate_check_note_projects_the_budget_and_names_the_step_budget():
+def test_rate_check_note_projects_the_budget_and_names_the_step_budget(capsys):
     from svorf.run_records import RateCheck
 
-    check = RateCheck("cpu recipe", (427.0, 440.0), float32_here=True)
+    check = RateCheck("cpu recipe", (427.0, 440.0), 3600.0, float32_here=True, after_s=150.0)
     # The 60-minute command on an AVX2-only CPU: 218 steps per minute, 13,068 steps.
-    note = check.note(218.0, 3600.0, 13_068)
+    note = check.note(218.0, 13_068)
     assert "218 steps per minute here" in note and "about 13,068 steps" in note
     assert "427-440 steps per minute" in note and "float32" in note
     assert "--steps 26000" in note and "about 119 minutes here" in note
-    assert check.note(0.8 * 427.0, 3600.0, 20_000) is None  # near the recipe's speed
-    assert "float32" not in RateCheck("r", (427.0, 440.0)).note(100.0, 7200.0, 12_000)
+    assert check.note(0.8 * 427.0, 20_000) is None  # near the recipe's speed
+    assert "float32" not in RateCheck("r", (427.0, 440.0), 7200.0).note(100.0, 12_000)
     assert RateCheck.probe_seconds(3600.0) == 180.0
     assert RateCheck.probe_seconds(600.0) == 60.0 and RateCheck.probe_seconds(1e5) == 300.0
+    # Speaks once it is due: 545 steps in the first 150 s of a call that resumed at step
+    # 1,000 with 1,000 s of training behind it, so 2,450 s of the budget are left.
+    assert not check.speak(1_545, 1_000, 1_149.0, 1_000.0, 10**6)  # 149 s: not yet
+    assert capsys.readouterr().err == ""
+    assert check.speak(1_545, 1_000, 1_150.0, 1_000.0, 10**6)
+    err = capsys.readouterr().err  # 218 steps per minute for 2,450 s more: 8,901 steps
+    assert err.startswith("svorf train: 218 steps per minute here") and "about 10,446" in err
 
 
 def test_a_slow_time_budgeted_recipe_run_says_so_once_early(split, tmp_path, monkeypatch, capsys):
-    import svorf.train as st
+    import svorf.train_config as tc
     from svorf.registry import Recipe
     from svorf.run_records import RateCheck
 
     # The smoke model stands in for a recipe's, measured at an impossible speed.
     fast = Recipe("test recipe", {}, {}, ("synthetic",), steps_per_minute=(1e9, 1e9))
-    monkeypatch.setattr(st, "recipe_of", lambda m, t: fast)
+    monkeypatch.setattr(tc, "recipe_of", lambda m, t: fast)
     monkeypatch.setattr(RateCheck, "probe_seconds", staticmethod(lambda s: 0.0))
     train(split, tmp_path / "budget", MCFG, tcfg(steps=4), progress=False, max_wall_s=3600.0)
     err = capsys.readouterr().err
