@@ -15,7 +15,7 @@ import resource
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -174,15 +174,15 @@ class Budget:
         self.paused += time.perf_counter() - tp
 
 
-@dataclass(frozen=True)
+@dataclass
 class RateCheck:
     """A time-budgeted run's early check of its speed against its recipe's.
 
     Under a minute budget the machine decides how many steps a run makes, and fewer steps
-    score lower. ``svorf.train`` measures a call's steps per minute once, after ``after_s``
-    seconds of its training, and prints :meth:`note_at` when the speed is under ``below``
-    x the slowest speed the recipe was measured at, so the user learns it at once instead
-    of from a weaker result at the end.
+    score lower. ``svorf.train`` measures a call's steps per minute once, over the second
+    half of its first ``after_s`` seconds of training (:meth:`speak`), and prints
+    :meth:`note` when the speed is under ``below`` x the slowest speed the recipe was
+    measured at, so the user learns it at once instead of from a weaker result at the end.
 
     Attributes:
         recipe: the recipe's name ("cpu recipe").
@@ -191,7 +191,7 @@ class RateCheck:
         max_wall_s: the run's training-time budget in seconds.
         float32_here: whether the recipe's bf16 autocast (``"auto"``) resolves to float32
             on this device, as on a CPU without native bf16.
-        after_s: seconds of the call's training before the speed is measured.
+        after_s: seconds of the call's training after which the speed is known.
         below: the fraction of the slowest expected speed under which it speaks.
     """
 
@@ -201,6 +201,8 @@ class RateCheck:
     float32_here: bool = False
     after_s: float = 180.0
     below: float = 0.8
+    _mark: tuple[int, float] | None = field(default=None, init=False, repr=False)
+    """(step, wall time) at half of ``after_s``, where the measured window starts."""
 
     @staticmethod
     def probe_seconds(max_wall_s: float) -> float:
@@ -208,18 +210,24 @@ class RateCheck:
         return min(300.0, max(60.0, 0.05 * max_wall_s))
 
     def speak(
-        self, done: int, start: int, wall: float, wall_offset: float, limit: int, bar: Any = None
+        self, done: int, wall: float, wall_offset: float, limit: int, bar: Any = None
     ) -> bool:
-        """At training wall time ``wall`` (step ``done``; this call started at step
-        ``start`` and wall time ``wall_offset``; step limit ``limit``): False before
-        ``after_s`` seconds of the call's training, else print :meth:`note` of the call's
-        speed on stderr (above the progress bar ``bar``), if it has one, and return True."""
+        """At step ``done`` and training wall time ``wall`` (this call started at wall time
+        ``wall_offset``; step limit ``limit``): False before ``after_s`` seconds of the
+        call's training, else print :meth:`note` on stderr (above the progress bar ``bar``),
+        if it has one, and return True. The speed is that of the window's second half, past
+        the first steps, which are faster than the rest (some losses start later)."""
         call_s = wall - wall_offset
+        if self._mark is None:
+            if call_s >= self.after_s / 2.0:
+                self._mark = (done, wall)
+            return False
         if call_s < self.after_s:
             return False
-        if done <= start or call_s <= 0:
+        steps, secs = done - self._mark[0], wall - self._mark[1]
+        if steps <= 0 or secs <= 0:
             return True
-        rate = (done - start) / call_s * 60.0
+        rate = steps / secs * 60.0
         projected = min(limit, done + int(rate / 60.0 * max(self.max_wall_s - wall, 0.0)))
         note = self.note(rate, projected)
         if note is not None:

@@ -240,7 +240,7 @@ def train(
                 wall = distributed.all_reduce_max(wall, run.device)
             out_of_time = budget.spent(wall)
             if rate_check is not None and rate_check.speak(
-                done, run.start, wall, run.wall_offset, cfg.steps, bar
+                done, wall, run.wall_offset, cfg.steps, bar
             ):
                 rate_check = None  # once
             if run.main and (done % cfg.log_every == 0 or done == cfg.steps or out_of_time):

@@ -774,13 +774,14 @@ def test_rate_check_note_projects_the_budget_and_names_the_step_budget(capsys):
     assert "float32" not in RateCheck("r", (427.0, 440.0), 7200.0).note(100.0, 12_000)
     assert RateCheck.probe_seconds(3600.0) == 180.0
     assert RateCheck.probe_seconds(600.0) == 60.0 and RateCheck.probe_seconds(1e5) == 300.0
-    # Speaks once it is due: 545 steps in the first 150 s of a call that resumed at step
-    # 1,000 with 1,000 s of training behind it, so 2,450 s of the budget are left.
-    assert not check.speak(1_545, 1_000, 1_149.0, 1_000.0, 10**6)  # 149 s: not yet
+    # Speaks once it is due, of the speed in the window's second half: a call that resumed
+    # at 1,000 s of training, 1,372 steps done at 150 s, 272 of them since 75 s.
+    assert not check.speak(1_100, 1_075.0, 1_000.0, 10**6)  # 75 s: the window starts
+    assert not check.speak(1_371, 1_149.0, 1_000.0, 10**6)  # 149 s: not yet
     assert capsys.readouterr().err == ""
-    assert check.speak(1_545, 1_000, 1_150.0, 1_000.0, 10**6)
-    err = capsys.readouterr().err  # 218 steps per minute for 2,450 s more: 8,901 steps
-    assert err.startswith("svorf train: 218 steps per minute here") and "about 10,446" in err
+    assert check.speak(1_372, 1_150.0, 1_000.0, 10**6)
+    err = capsys.readouterr().err  # 217.6 steps per minute for 2,450 s more: 8,885 steps
+    assert err.startswith("svorf train: 218 steps per minute here") and "about 10,257" in err
 
 
 def test_a_slow_time_budgeted_recipe_run_says_so_once_early(split, tmp_path, monkeypatch, capsys):
