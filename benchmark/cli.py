@@ -89,7 +89,8 @@ def _parser() -> argparse.ArgumentParser:
         metavar="M",
         help="training wall-clock budget per model in minutes (evaluation and checkpoint "
         "writes excluded); without --steps the budget alone stops training. Part of the "
-        "model cache key; table protocols and editing",
+        "model cache key; table protocols and editing. The cpu recipe's model says early "
+        "when this machine is too slow for the steps its results were measured at",
     )
     r.add_argument(
         "--datasets",

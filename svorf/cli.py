@@ -119,7 +119,9 @@ def _parser() -> argparse.ArgumentParser:
         metavar="M",
         help="stop after M minutes of training wall time (checkpoint kept; --resume "
         "continues, with the same M where the config has progress-driven schedules); "
-        "with --steps 1000000 this is how `benchmark --train-minutes M` trains",
+        "with --steps 1000000 this is how `benchmark --train-minutes M` trains. The "
+        "cpu recipe's model says early when this machine is too slow for the steps its "
+        "results were measured at, and which --steps would match them",
     )
     t.add_argument(
         "--init-from",
