@@ -215,7 +215,7 @@ class RateCheck:
         """At step ``done`` and training wall time ``wall`` (this call started at wall time
         ``wall_offset``; step limit ``limit``): False before ``after_s`` seconds of the
         call's training, else print :meth:`note` on stderr (above the progress bar ``bar``),
-        if it has one, and return True. The speed is that of the window's second half, past
+        if it has one and the budget, not the step limit, will end the run, and return True. The speed is that of the window's second half, past
         the first steps. A run's first minutes are its fastest (a 5-minute cpu-recipe run
         made 325 steps in its first minute and 245-290 in each later one), so the note's
         projection is on the high side and the comparison with the recipe's whole-run
@@ -231,7 +231,9 @@ class RateCheck:
         if steps <= 0 or secs <= 0:
             return True
         rate = steps / secs * 60.0
-        projected = min(limit, done + int(rate / 60.0 * max(self.max_wall_s - wall, 0.0)))
+        projected = done + int(rate / 60.0 * max(self.max_wall_s - wall, 0.0))
+        if projected >= limit:  # the step limit, not the budget, ends this run
+            return True
         note = self.note(rate, projected)
         if note is not None:
             msg = f"svorf train: {note}"

@@ -782,6 +782,10 @@ def test_rate_check_note_projects_the_budget_and_names_the_step_budget(capsys):
     assert check.speak(1_372, 1_150.0, 1_000.0, 10**6)
     err = capsys.readouterr().err  # 217.6 steps per minute for 2,450 s more: 8,885 steps
     assert err.startswith("svorf train: 218 steps per minute here") and "about 10,257" in err
+    # Where the step limit will end the run before the budget, the speed costs no steps.
+    short = RateCheck("cpu recipe", (427.0, 440.0), 3600.0, after_s=150.0)
+    assert not short.speak(1_100, 1_075.0, 1_000.0, 10_257)
+    assert short.speak(1_372, 1_150.0, 1_000.0, 10_257) and capsys.readouterr().err == ""
 
 
 def test_a_slow_time_budgeted_recipe_run_says_so_once_early(split, tmp_path, monkeypatch, capsys):
@@ -793,11 +797,12 @@ def test_a_slow_time_budgeted_recipe_run_says_so_once_early(split, tmp_path, mon
     fast = Recipe("test recipe", {}, {}, ("synthetic",), steps_per_minute=(1e9, 1e9))
     monkeypatch.setattr(tc, "recipe_of", lambda m, t: fast)
     monkeypatch.setattr(RateCheck, "probe_seconds", staticmethod(lambda s: 0.0))
-    train(split, tmp_path / "budget", MCFG, tcfg(steps=4), progress=False, max_wall_s=3600.0)
+    # A 1.5-second budget ends the run long before its 1,000 steps.
+    budget = tcfg(steps=1000, ckpt_every=1000)
+    train(split, tmp_path / "budget", MCFG, budget, progress=False, max_wall_s=1.5)
     err = capsys.readouterr().err
     assert err.count("steps per minute here") == 1, err
     assert "test recipe's results were measured at 1000000000-1000000000" in err
-    assert "about 4 steps" in err  # the run's steps cap the projection
     # No budget, no check: a step budget makes the same steps on any machine.
     train(split, tmp_path / "steps", MCFG, tcfg(steps=4), progress=False)
     assert "steps per minute here" not in capsys.readouterr().err
