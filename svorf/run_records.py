@@ -214,12 +214,12 @@ class RateCheck:
     ) -> bool:
         """At step ``done`` and training wall time ``wall`` (this call started at wall time
         ``wall_offset``; step limit ``limit``): False before ``after_s`` seconds of the
-        call's training, else print :meth:`note` on stderr (above the progress bar ``bar``),
-        if it has one and the budget, not the step limit, will end the run, and return True. The speed is that of the window's second half, past
-        the first steps. A run's first minutes are its fastest (a 5-minute cpu-recipe run
-        made 325 steps in its first minute and 245-290 in each later one), so the note's
-        projection is on the high side and the comparison with the recipe's whole-run
-        speeds errs towards silence."""
+        call's training; after them True, having printed :meth:`note` on stderr (above the
+        progress bar ``bar``) where it has one and the budget, not the step limit, will end
+        the run. The speed is that of the window's second half, past the first steps. A
+        run's first minutes are its fastest (a 5-minute cpu-recipe run made 325 steps in
+        its first minute and 245-290 in each later one), so the projection is on the high
+        side and the comparison with the recipe's whole-run speeds errs towards silence."""
         call_s = wall - wall_offset
         if self._mark is None:
             if call_s >= self.after_s / 2.0:

@@ -545,14 +545,14 @@ def recipe_of(mcfg: ModelConfig, tcfg: TrainConfig) -> Recipe | None:
     --train-minutes`` change). A variant of the recipe (an ablation, another resolution)
     costs another amount per step, so its speed says nothing about the recipe's.
     """
-    same = {k: v for k, v in learning_fields(tcfg).items() if k not in ("steps", "seed")}
+
+    def schedule(t: TrainConfig) -> dict[str, Any]:
+        return learning_fields(t.replace(steps=1, seed=0))
+
     for scale, spec in registry.SCALES.items():
-        if spec.recipe is None:
-            continue
-        for preset in spec.recipe.presets:
+        for preset in spec.recipe.presets if spec.recipe is not None else ():
             ref_m, ref_t = run_configs(scale, preset)
-            ref = {k: v for k, v in learning_fields(ref_t).items() if k not in ("steps", "seed")}
-            if mcfg == ref_m and same == ref:
+            if mcfg == ref_m and schedule(tcfg) == schedule(ref_t):
                 return spec.recipe
     return None
 
