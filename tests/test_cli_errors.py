@@ -1,7 +1,8 @@
 """The command lines' errors and help: every error is one line on stderr that says what
 was wrong and how to fix it ("did you mean ...?" for a misspelt name), with exit status 2
-for bad usage; ``--help`` shows defaults and mentions nothing outside the repository; and
-``benchmark run`` prints each verdict, the data folder and each report path once.
+for bad usage; ``--help`` shows defaults and mentions nothing outside the repository (nor
+does any message, docstring, comment or user doc); and ``benchmark run`` prints each
+verdict, the data folder and each report path once.
 
 No training, rendering or dataset generation: every bad input is refused before any work
 (seconds in all; two subprocess runs check the real entry points).
@@ -14,6 +15,7 @@ import re
 import subprocess
 import sys
 import time
+import tokenize
 from pathlib import Path
 
 import pytest
@@ -324,6 +326,33 @@ def _helps() -> dict[str, str]:
 def test_help_texts_mention_nothing_outside_the_repository():
     for name, text in _helps().items():
         assert not DANGLING.search(text), (name, DANGLING.search(text))
+
+
+#: What a message, report note, docstring or comment must not lean on: a tracker's issue,
+#: a design file outside the repository, or the folder beside the checkout.
+OUTSIDE = re.compile(
+    r"\bthe issue\b|\bissue's\b|\bissues? #?\d|DESIGN\.md|\.\./shared", re.IGNORECASE
+)
+
+
+def test_sources_mention_nothing_outside_the_repository():
+    """Every string literal (messages, report notes, help, docstrings) and every comment of
+    the packages and tests (a report's notes are written from these strings), and the user
+    docs: the README and ``docs/*.md`` (the lab diaries under ``docs/notes/`` are history)."""
+    found = [
+        str(path.relative_to(ROOT))
+        for path in (ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")))
+        if OUTSIDE.search(path.read_text())
+    ]
+    for pkg in ("svorf", "benchmark", "generators", "scenefmt", "assets_procedural", "tests"):
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            with path.open("rb") as f:
+                for tok in tokenize.tokenize(f.readline):
+                    if tok.type in (tokenize.STRING, tokenize.COMMENT) and OUTSIDE.search(
+                        tok.string
+                    ):
+                        found.append(f"{path.relative_to(ROOT)}:{tok.start[0]}")
+    assert not found, found
 
 
 @pytest.mark.parametrize(

@@ -1,5 +1,5 @@
-"""The ``speed`` protocol's parts (issue 7): the uORF-style configuration of the same code,
-the ratio row against the paper's and the issue's ratios, options, the generator rows
+"""The ``speed`` protocol's parts: the uORF-style configuration of the same code,
+the ratio row against the paper's and the target ratios, options, the generator rows
 without Blender, and the schema of the new metrics. Fast tier: no training, no Blender
 (the full protocol at smoke scale is ``tests/test_benchmark.py::
 test_speed_protocol_on_synthetic_data``, slow tier).
@@ -217,7 +217,7 @@ def test_baseline_rows_target_needs_speed_equal_psnr_and_exact_masks(
         assert r["table"] == "speed_generator" and r["n_cases"] == 80
         assert r["metrics"]["baseline_speedup"] == speedup
         assert r["metrics"]["psnr"] == psnr and r["metrics"]["baseline_psnr"] == base_psnr
-    # the issue's target is against the factory script; the tuned one is a control
+    # the target is against the factory script; the tuned one is a control
     assert rows[0]["target"] == 1.5 and rows[0]["target_met"] is met
     assert rows[1]["target"] is None and rows[1]["target_met"] is None
     assert "ACCURATE" in rows[0]["note"] and "FAST" in rows[1]["note"]

@@ -188,7 +188,7 @@ def baseline_rows(ctx: Context, options: SpeedOptions) -> list[dict[str, Any]]:
     One row per ``options.baseline_denoisers`` entry, each from one
     :func:`benchmark.tools.bench_baseline.compare` run (both sides fresh processes, one after
     the other, on the same scenes; PSNR of both against the same no-denoiser reference).
-    ``baseline_speedup`` = script wall / ``generate`` wall. The issue's target applies to
+    ``baseline_speedup`` = script wall / ``generate`` wall. The target applies to
     the ``factory`` script (a straightforward script switches the denoiser on and keeps
     Blender's settings): ``target_met`` is true when the speed-up reaches
     :data:`GENERATOR_BASELINE_TARGET` *and* ``generate``'s PSNR is at least the script's
@@ -280,7 +280,7 @@ def baseline_note(row: dict[str, Any]) -> str:
     if m["baseline_speedup"] is None:
         return f"{row['model']}: null ({row['null_reasons']['baseline_speedup']})"
     if row["target"] is None:
-        verdict = "a stricter control than the issue's straightforward script, no target"
+        verdict = "a stricter control than the factory script (Blender's settings, denoiser on), no target"
     else:
         ok = "met" if row["target_met"] else "NOT met"
         verdict = f"target >= {row['target']}x at equal or better PSNR {ok}"
