@@ -469,7 +469,8 @@ def render_probe(model: SVORF, changes: dict[str, Any]) -> SVORF:
     per ray (is an error the quadrature's?); ``{"comp_temperature": 0.5}`` sharpens the
     slot-guided soft masks m (is an error the masks' softness or the fields'?);
     ``{"eval_mask_rule": "peak"}`` reads each pixel's masks from its largest-weight sample
-    (is the rim a half-transparent rind in front of the floor?). The model
+    (is the rim a half-transparent rind in front of the floor?), ``"peak_background"``
+    lets that sample decide only background against object. The model
     is changed in place and returned.
 
     Raises:

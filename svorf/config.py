@@ -254,8 +254,12 @@ class ModelConfig:
     volume-rendering weight, ``sum_i w_i m_i / acc``. ``"peak"``: the soft masks of the
     sample of largest weight alone, the slot of the surface the ray meets; a thin,
     half-transparent rind of object matter in front of the floor then gives the pixel to
-    the floor when the floor's sample outweighs each of the rind's. Colour, depth and
-    opacity are unchanged. Rays with no weight fall back to the mean mask in both forms."""
+    the floor when the floor's sample outweighs each of the rind's. ``"peak_background"``:
+    the peak sample decides only background against object (the pixel is the background
+    slot's where the largest-weight sample belongs to it, as a floor sample below
+    ``fg_zmin`` does), and which object from the weighted masks, as the paper reads it.
+    Colour, depth and opacity are unchanged. Rays with no weight fall back to the mean
+    mask in every form."""
 
     # ---- cpu-scale training recipe (docs/notes/cpu_recipe.md; all off at paper scale) ----
     fg_zmin: float | None = None

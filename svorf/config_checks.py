@@ -215,10 +215,10 @@ def check(cfg: Any) -> None:
         v = getattr(cfg, name)
         if v is not None and not 0.0 < v < 1.0:
             raise ValueError(f"ModelConfig.{name} must be in (0, 1) or None (off), got {v!r}")
-    if cfg.eval_mask_rule not in (None, "composite", "peak"):
+    if cfg.eval_mask_rule not in (None, "composite", "peak", "peak_background"):
         raise ValueError(
             f"ModelConfig.eval_mask_rule must be None (the paper's weighted masks), "
-            f"'composite' (the same) or 'peak', got {cfg.eval_mask_rule!r}"
+            f"'composite' (the same), 'peak' or 'peak_background', got {cfg.eval_mask_rule!r}"
         )
     if cfg.enc_up_kernel not in (None, 1, 3):
         raise ValueError(

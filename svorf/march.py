@@ -121,22 +121,35 @@ class MarchResult:
     coarse_rgb: Tensor
 
 
-def ray_slot_probs(w: Tensor, m: Tensor, acc: Tensor, rule: str | None = None) -> Tensor:
+def ray_slot_probs(
+    w: Tensor, m: Tensor, acc: Tensor, rule: str | None = None, is_bg: Tensor | None = None
+) -> Tensor:
     """Each ray's slot distribution [B, R, K] from its samples' weights w [B, R, N], soft
     masks m [B, R, N, K] and opacity acc [B, R] (``ModelConfig.eval_mask_rule``).
 
     None or ``"composite"`` (the paper): ``sum_i w_i m_i / acc``. ``"peak"``: ``m`` of the
-    sample of largest weight. Rays with acc ~ 0 fall back to the mean mask over the
-    samples, so every row is a distribution in both forms.
+    sample of largest weight. ``"peak_background"``: the peak sample's ``m`` where that
+    sample belongs to a background slot (its arg-max slot is one of ``is_bg`` [B, K]), the
+    composite elsewhere. Rays with acc ~ 0 fall back to the mean mask over the samples,
+    so every row is a distribution in all forms.
     """
     eps = 1e-6
-    if rule == "peak":
-        peak = w.argmax(dim=2, keepdim=True)  # [B, R, 1]
-        w_peak = w.gather(2, peak)
-        m_peak = m.gather(2, peak[..., None].expand(-1, -1, -1, m.shape[-1]))[:, :, 0]
-        return (w_peak * m_peak + eps * m.mean(dim=2)) / (w_peak + eps)
-    num = torch.einsum("brn,brnk->brk", w, m)
-    return (num + eps * m.mean(dim=2)) / (acc[..., None] + eps)
+    comp = None
+    if rule != "peak":
+        num = torch.einsum("brn,brnk->brk", w, m)
+        comp = (num + eps * m.mean(dim=2)) / (acc[..., None] + eps)
+        if rule != "peak_background":
+            return comp
+    peak = w.argmax(dim=2, keepdim=True)  # [B, R, 1]
+    w_peak = w.gather(2, peak)
+    m_peak = m.gather(2, peak[..., None].expand(-1, -1, -1, m.shape[-1]))[:, :, 0]
+    probs = (w_peak * m_peak + eps * m.mean(dim=2)) / (w_peak + eps)
+    if comp is None:
+        return probs
+    if is_bg is None:
+        raise ValueError("ray_slot_probs: the 'peak_background' rule needs is_bg [B, K]")
+    on_bg = is_bg.gather(1, m_peak.argmax(dim=-1))  # [B, R]: the peak sample's slot
+    return torch.where(on_bg[..., None], probs, comp)
 
 
 def merge_queries(a: FieldQuery, b: FieldQuery, order: Tensor) -> FieldQuery:

@@ -353,7 +353,7 @@ class SVORF(nn.Module):
         connectivity = rgb.new_zeros(())
         if need_aux:
             rule = cfg.eval_mask_rule if evaluating else None
-            slot_probs = ray_slot_probs(w, q.m, acc, rule)
+            slot_probs = ray_slot_probs(w, q.m, acc, rule, is_bg)
             if cfg.connectivity:
                 connectivity = connectivity_loss(q.sigma_k, t, far_r, cfg.near, cfg.far, slot_mask)
         bg_rgb = None

@@ -247,15 +247,39 @@ def test_peak_mask_rule_hand_example():
         assert torch.allclose(p, m.mean(dim=2), atol=1e-6)
 
 
-def test_peak_mask_rule_changes_only_the_masks_and_only_at_evaluation():
+def test_peak_background_rule_hand_example():
+    """The peak sample decides background against object, the weighted masks which object:
+    a rind in front of the floor goes to the floor; a ray whose peak sample is an object's
+    keeps the paper's split between the objects."""
+    a, b, bg = torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0]), torch.eye(3)[2]
+    is_bg = torch.tensor([[False, False, True]])
+    w = torch.tensor([[[0.2, 0.2, 0.15, 0.4, 0.0], [0.3, 0.25, 0.2, 0.1, 0.0]]])
+    m = torch.stack([torch.stack([a, a, a, bg, bg]), torch.stack([a, b, b, bg, bg])])[None]
+    acc = w.sum(-1)
+    out = march_mod.ray_slot_probs(w, m, acc, "peak_background", is_bg)
+    assert torch.allclose(out[0, 0], bg, atol=1e-5)  # the floor's sample is the peak
+    comp = march_mod.ray_slot_probs(w, m, acc)
+    assert torch.equal(out[0, 1], comp[0, 1])  # object a's sample is the peak: as the paper
+    assert out[0, 1].argmax() == 1  # ... so object b, with more of the weight, keeps it
+    with pytest.raises(ValueError, match="needs is_bg"):
+        march_mod.ray_slot_probs(w, m, acc, "peak_background")
+
+
+@pytest.mark.parametrize("rule", ["peak", "peak_background"])
+def test_peak_mask_rules_change_only_the_masks_and_only_at_evaluation(rule):
     _, model, slots, o, d = _setup()
     base = model.render_chunked(slots, o, d)
-    on = _with(model, eval_mask_rule="peak")
+    on = _with(model, eval_mask_rule=rule)
     out = on.render_chunked(slots, o, d)
     for n in ("rgb", "depth", "acc", "coarse_rgb"):
         assert torch.equal(getattr(base, n), getattr(out, n)), n
     _check_distribution(out)
-    assert not torch.allclose(out.slot_probs, base.slot_probs)
+    if rule == "peak":
+        assert not torch.allclose(out.slot_probs, base.slot_probs)
+    else:  # each pixel read as the paper reads it or as the peak rule does
+        peak = _with(model, eval_mask_rule="peak").render_chunked(slots, o, d).slot_probs
+        same = (out.slot_probs == base.slot_probs).all(-1)
+        assert torch.equal(out.slot_probs[~same], peak[~same])
     torch.manual_seed(1)
     a = model.render_rays(slots, o, d, perturb=True)  # training: the paper's masks
     torch.manual_seed(1)

@@ -394,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
                     "bg_outside_fg), of the samples per ray (n_coarse, n_fine) and where they "
                     "are taken (clip_to_box, box_z, clip_floor_z, clip_floor_front) or of the "
                     "soft masks' temperature (comp_temperature) or how a pixel's masks are "
-                    "read from its ray (eval_mask_rule=peak), "
+                    "read from its ray (eval_mask_rule=peak or peak_background), "
                     "repeatable: a probe of where the errors live, written to "
                     "failures-probe.json")  # fmt: skip
     dg.add_argument("--occlusion", action="store_true",
