@@ -127,9 +127,9 @@ class ScaleSpec:
 #: leaves off. The Room presets keep the plain cpu scale: the recipe was tuned and measured
 #: on CLEVR-567 only. (Room-Chair's objects stand in the same +-3 floor square and its
 #: cameras are the same, so the box fits it; at 60 minutes without the recipe Room-Chair
-#: does not decompose, FG-ARI 34.3 at 16,935 steps. With the recipe, a probe at seed 0
-#: gave 62.9 at 17,000 steps, one slot per chair (docs/notes/cpu_recipe.md, "The cpu
-#: recipe on Room-Chair"); not given to it until a second seed of both.)
+#: does not decompose, FG-ARI 34.3 at 16,935 steps. With the recipe, a probe gave 62.9 /
+#: 62.8 at seeds 0 / 1 at 17,000 steps, one slot per chair (docs/notes/cpu_recipe.md,
+#: "The cpu recipe on Room-Chair"); not given to it until the plain model's seed 1.)
 _CPU_RECIPE = Recipe(
     name="cpu recipe",
     # The benchmark scores a moving average of the weights (docs/notes/cpu_recipe.md,
