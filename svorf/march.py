@@ -134,21 +134,21 @@ def ray_slot_probs(
     so every row is a distribution in all forms.
     """
     eps = 1e-6
-    comp = None
+    mean_m = m.mean(dim=2)
     if rule != "peak":
         num = torch.einsum("brn,brnk->brk", w, m)
-        comp = (num + eps * m.mean(dim=2)) / (acc[..., None] + eps)
+        comp = (num + eps * mean_m) / (acc[..., None] + eps)
         if rule != "peak_background":
             return comp
+        if is_bg is None:
+            raise ValueError("ray_slot_probs: the 'peak_background' rule needs is_bg [B, K]")
     peak = w.argmax(dim=2, keepdim=True)  # [B, R, 1]
     w_peak = w.gather(2, peak)
     m_peak = m.gather(2, peak[..., None].expand(-1, -1, -1, m.shape[-1]))[:, :, 0]
-    probs = (w_peak * m_peak + eps * m.mean(dim=2)) / (w_peak + eps)
-    if comp is None:
+    probs = (w_peak * m_peak + eps * mean_m) / (w_peak + eps)
+    if rule == "peak":
         return probs
-    if is_bg is None:
-        raise ValueError("ray_slot_probs: the 'peak_background' rule needs is_bg [B, K]")
-    on_bg = is_bg.gather(1, m_peak.argmax(dim=-1))  # [B, R]: the peak sample's slot
+    on_bg = is_bg.gather(1, m_peak.argmax(dim=-1))  # [B, R]: the peak sample is a background's
     return torch.where(on_bg[..., None], probs, comp)
 
 
