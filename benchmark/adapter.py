@@ -8,7 +8,7 @@ benchmark needs from svorf:
   :func:`train_config` (scale, preset, seed, steps), both as frozen dataclasses
   plus :func:`config_dict` to store them as JSON; both start from
   :func:`base_configs`, the one place that picks svorf's configs per scale
-  (the ``cpu`` scale trains the CLEVR-567 family with the cpu recipe,
+  (the ``cpu`` scale trains the CLEVR-567 family and Room-Chair with the cpu recipe,
   docs/notes/cpu_recipe.md), and :func:`config_key` / :func:`learning_fields`, svorf's
   name for what a model learns (the same key ``svorf config`` prints);
 - training: :func:`train` (resumable, into a run folder, optionally with a
@@ -190,7 +190,7 @@ def base_configs(
 ) -> tuple[Any, Any]:
     """svorf's (ModelConfig, TrainConfig) for a benchmark model, before ablation overrides:
     ``svorf.train.run_configs(scale, preset)``, the same configs ``svorf train --scale S
-    --preset P`` uses (the cpu recipe at ``cpu`` for the CLEVR-567 family).
+    --preset P`` uses (the cpu recipe at ``cpu`` for its presets).
 
     Raises:
         ValueError: on an unknown scale or preset (svorf's message).

@@ -735,7 +735,7 @@ class Context:
         recipe = sorted({f"{m.job.variant} on {m.job.train_preset}" for m in on_recipe})
         if recipe:
             self.notes.append(
-                f"The '{self.scale}' scale trains the CLEVR-567-family models with the cpu "
+                f"The '{self.scale}' scale trains the CLEVR-567-family and Room-Chair models with the cpu "
                 f"recipe (svorf.registry, docs/notes/cpu_recipe.md): {', '.join(recipe)}; "
                 "the ablation variants are applied on top of it."
             )

@@ -135,9 +135,9 @@ SCALES: dict[str, ScaleSettings] = {
             (
                 "cpu: 64x64 renders, 1,000 training scenes for CLEVR-567 and its held-out-appearance "
                 "twin (240 for the other presets, 400 for Room-Diverse), 50 test "
-                "scenes, the svorf 'cpu' model; CLEVR-567-family models train with the cpu "
-                "recipe (svorf.registry, docs/notes/cpu_recipe.md), Room models with svorf's cpu "
-                "schedule (a 2-core machine, hours per protocol)."
+                "scenes, the svorf 'cpu' model; CLEVR-567-family and Room-Chair models train with "
+                "the cpu recipe (svorf.registry, docs/notes/cpu_recipe.md), Room-Diverse models "
+                "with svorf's cpu schedule (a 2-core machine, hours per protocol)."
             ),
         ),
     ),

@@ -19,7 +19,7 @@ Example:
     >>> from svorf.registry import SCALES, recipe_for
     >>> SCALES["cpu"].image_size
     64
-    >>> recipe_for("cpu", "clevr567").name, recipe_for("cpu", "room-chair")
+    >>> recipe_for("cpu", "room-chair").name, recipe_for("cpu", "room-diverse")
     ('cpu recipe', None)
 """
 
@@ -123,13 +123,12 @@ class ScaleSpec:
 
 
 #: The cpu recipe (docs/notes/cpu_recipe.md): what the ``cpu`` scale changes for the
-#: CLEVR-567 family. Every item is a documented config field that the ``paper`` scale
-#: leaves off. The Room presets keep the plain cpu scale: the recipe was tuned and measured
-#: on CLEVR-567 only. (Room-Chair's objects stand in the same +-3 floor square and its
-#: cameras are the same, so the box fits it; at 60 minutes without the recipe Room-Chair
-#: does not decompose, FG-ARI 34.3 at 16,935 steps. With the recipe, a probe gave 62.9 /
-#: 62.8 at seeds 0 / 1 at 17,000 steps, one slot per chair (docs/notes/cpu_recipe.md,
-#: "The cpu recipe on Room-Chair"); not given to it until the plain model's seed 1.)
+#: CLEVR-567 family and Room-Chair. Every item is a documented config field that the
+#: ``paper`` scale leaves off. It was tuned on CLEVR-567; Room-Chair's objects stand in the
+#: same +-3 floor square and its cameras are the same, so the box fits it. At about 17,000
+#: steps the plain cpu scale left Room-Chair at FG-ARI 34.3 / 29.3 (seeds 0 / 1, slots tiling
+#: the floor), the recipe gave 62.9 / 62.8 with one slot per chair (docs/notes/cpu_recipe.md,
+#: "The cpu recipe on Room-Chair"). Room-Diverse keeps the plain cpu scale (unmeasured).
 _CPU_RECIPE = Recipe(
     name="cpu recipe",
     # The benchmark scores a moving average of the weights (docs/notes/cpu_recipe.md,
@@ -186,7 +185,7 @@ _CPU_RECIPE = Recipe(
         # against 67.0 / 68.7), and crossed the line of "decomposes" at both.
         "slot_mask_train": 0,
     },
-    presets=("clevr567", "clevr567-heldout", "packed-clevr11"),
+    presets=("clevr567", "clevr567-heldout", "packed-clevr11", "room-chair"),
     doc="docs/notes/cpu_recipe.md",
     # CLEVR-567 at seeds 0 and 1 (2026-11-30, an AMD EPYC with AVX-512 and native bf16):
     # 25,606-25,744 steps in 60 minutes, 51,282-52,765 in 120. Seeds 2 and 3 and the other

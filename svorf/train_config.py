@@ -469,7 +469,8 @@ assert _CPU is not None  # the cpu scale has its recipe
 
 #: The cpu recipe (docs/notes/cpu_recipe.md; ``svorf.registry.SCALES["cpu"].recipe``): what
 #: the ``cpu`` scale changes on top of :func:`train_config` / ``svorf.config.model_config``
-#: for the CLEVR-567 family (:data:`CPU_RECIPE_PRESETS`), train fields then model fields.
+#: for the CLEVR-567 family and Room-Chair (:data:`CPU_RECIPE_PRESETS`), train fields then
+#: model fields.
 #: ``svorf train --scale cpu`` and ``benchmark --scale cpu`` both get it through
 #: :func:`run_configs`.
 CPU_RECIPE: dict[str, Any] = _CPU.fields
@@ -518,7 +519,7 @@ def run_configs(
     """The (model, train) configs of a ``svorf train --scale S --preset P`` run.
 
     The scale's sizes and schedule and the preset's slots come from ``svorf.registry``;
-    at the ``cpu`` scale the CLEVR-567 family (:data:`CPU_RECIPE_PRESETS`) gets the cpu
+    at the ``cpu`` scale the CLEVR-567 family and Room-Chair (:data:`CPU_RECIPE_PRESETS`) get the cpu
     recipe (:data:`CPU_RECIPE`) unless ``recipe=False``; ``train_overrides`` (any
     TrainConfig field) are applied last. This is the one place that decides a scale's
     configs: the benchmark's ``--scale`` goes through it too.

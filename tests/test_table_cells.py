@@ -1,7 +1,7 @@
 """Every cell of the table protocols builds a valid config, and the cpu-scale ones train.
 
 A cell is (protocol, measured row, scale): the model variant and training preset of the
-row, with the scale's base configs (the cpu recipe at ``cpu`` for the CLEVR-567 family).
+row, with the scale's base configs (the cpu recipe at ``cpu`` for its presets).
 An ablation that cannot combine with a recipe item (Slot-Mixer has no per-slot density to
 localise) must say what was changed instead of crashing the protocol.
 """

@@ -748,7 +748,7 @@ def test_refine_train_renders_from_refined_slots_and_resumes(split, tmp_path):
 def test_recipe_of_names_the_recipes_model_and_not_its_variants():
     from svorf.train_config import recipe_of
 
-    for preset in ("clevr567", "clevr567-heldout", "packed-clevr11"):
+    for preset in ("clevr567", "clevr567-heldout", "packed-clevr11", "room-chair"):
         m, t = run_configs("cpu", preset)
         # --steps, --seed and benchmark --train-minutes change only these
         assert recipe_of(m, t.replace(steps=1_000_000, seed=3)).name == "cpu recipe"
@@ -756,7 +756,7 @@ def test_recipe_of_names_the_recipes_model_and_not_its_variants():
     assert recipe_of(m.replace(image_size=128), t) is None  # another cost per step
     assert recipe_of(m.replace(hypernetwork=False), t) is None  # an ablation
     assert recipe_of(m, t.replace(rays_per_scene=256)) is None
-    assert recipe_of(*run_configs("cpu", "room-chair")) is None  # no recipe there
+    assert recipe_of(*run_configs("cpu", "room-diverse")) is None  # no recipe there
     assert recipe_of(*run_configs("cpu", "clevr567", recipe=False)) is None
     assert recipe_of(*run_configs("smoke", "clevr567")) is None
 

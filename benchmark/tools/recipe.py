@@ -110,7 +110,7 @@ def recipe_configs(
     ``levers`` replaces or adds entries of :data:`RECIPE_LEVERS` (a ModelConfig field goes
     to the model, anything else to the TrainConfig); ``train_overrides`` are
     further TrainConfig fields (steps, lr, batch_scenes, ...). With no levers this equals
-    ``svorf.train.run_configs("cpu", preset)`` for the CLEVR-567 family.
+    ``svorf.train.run_configs("cpu", preset)`` for the recipe's presets.
     """
     mcfg, tcfg = run_configs("cpu", preset, recipe=False)
     mcfg, tcfg = apply_recipe(mcfg, tcfg, levers)
