@@ -226,8 +226,11 @@ def test_cpu_scale_takes_the_recipe_for_the_clevr_family_only():
     paper = adapter.model_config("paper", "clevr567", "packed11")
     assert (paper.num_slots, paper.slot_mask_train) == (11, 4)
     assert adapter.config_source("cpu", "clevr567-heldout") == adapter.RECIPE_CONFIG_SOURCE
-    # Room presets at cpu, and smoke / paper everywhere, keep svorf's scale configs.
+    # Room-Chair at cpu gets the recipe too; Room-Diverse at cpu, and smoke / paper
+    # everywhere, keep svorf's scale configs.
+    assert adapter.config_source("cpu", "room-chair") == adapter.RECIPE_CONFIG_SOURCE
     assert adapter.model_config("cpu", "room-chair") == run_configs("cpu", "room-chair")[0]
+    assert adapter.config_source("cpu", "room-diverse") == "svorf.train.run_configs"
     for scale in ("smoke", "paper"):
         assert adapter.model_config(scale, "clevr567") == run_configs(scale, "clevr567")[0]
         assert adapter.config_source(scale, "clevr567") == "svorf.train.run_configs"
