@@ -163,13 +163,16 @@ def svorf_preset(train_preset: str, variant: str) -> str:
     return "packed-clevr11" if variant == "packed11" else train_preset
 
 
-def num_slots(train_preset: str, variant: str = "full") -> int:
-    """K (background included) that svorf's preset registry gives this model."""
+def num_slots(scale: str, train_preset: str, variant: str = "full") -> int:
+    """K (background included) that svorf's registry gives this model at ``scale``: the
+    preset's, or the scale's recipe's own for that preset (``svorf.registry.slots_for``)."""
+    from svorf.registry import slots_for
+
     presets = _svorf_train().PRESETS
     key = svorf_preset(train_preset, variant)
     if key not in presets:
         raise ValueError(f"svorf has no training preset {key!r}; known: {sorted(presets)}")
-    return int(presets[key].num_slots)
+    return slots_for(scale, key)
 
 
 RECIPE_CONFIG_SOURCE = "svorf.train.run_configs (cpu recipe)"

@@ -492,13 +492,15 @@ def apply_recipe(
     tcfg: TrainConfig,
     levers: dict[str, Any] | None = None,
     recipe: Recipe = _CPU,
+    preset: str | None = None,
 ) -> tuple[ModelConfig, TrainConfig]:
     """``(mcfg, tcfg)`` with ``recipe`` (default the cpu recipe, :data:`CPU_RECIPE`) applied,
-    its entries replaced by ``levers`` (any model or train field, named by the recipe or
-    not). Levers that turn ``slot_locality`` off also turn off the recipe's
+    with the fields it sets for training preset ``preset`` alone (``Recipe.preset_model``;
+    None: none), its entries replaced by ``levers`` (any model or train field, named by the
+    recipe or not). Levers that turn ``slot_locality`` off also turn off the recipe's
     ``slot_locality_narrow`` and ``slot_locality_xy`` (that radius's schedule and shape)
     unless they set them themselves."""
-    lv = {**recipe.fields, **(levers or {})}
+    lv = {**recipe.fields_for(preset), **(levers or {})}
     if lv.get("slot_locality") is None:
         for name in ("slot_locality_narrow", "slot_locality_xy"):
             if name not in (levers or {}):
@@ -533,7 +535,7 @@ def run_configs(
     tcfg = train_config(scale, preset)
     scale_recipe = recipe_for(scale, preset) if recipe else None
     if scale_recipe is not None:
-        mcfg, tcfg = apply_recipe(mcfg, tcfg, recipe=scale_recipe)
+        mcfg, tcfg = apply_recipe(mcfg, tcfg, recipe=scale_recipe, preset=preset)
     return mcfg, tcfg.replace(**train_overrides)
 
 

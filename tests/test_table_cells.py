@@ -38,7 +38,7 @@ CELLS = _cells()
 def test_every_cell_builds_a_config(scale, preset, variant):
     mcfg = adapter.model_config(scale, preset, variant)
     tcfg = adapter.train_config(scale, preset, variant, seed=0, device="cpu")
-    assert mcfg.num_slots == adapter.num_slots(preset, variant)
+    assert mcfg.num_slots == adapter.num_slots(scale, preset, variant)
     for field, value in adapter.VARIANTS[variant].items():
         assert getattr(mcfg, field) == value, (field, CELLS[(scale, preset, variant)])
     assert tcfg.seed == 0 and tcfg.device == "cpu"

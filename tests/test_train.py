@@ -565,6 +565,11 @@ def test_configs_registry_and_json_round_trip():
     m, _ = run_configs("smoke", "packed-clevr11")
     assert (m.num_slots, m.slot_mask_train) == (11, 4)
     assert run_configs("smoke", "room-chair")[0].num_slots == 5
+    # the cpu recipe gives Room-Chair a spare slot; the paper scale keeps the paper's K
+    assert run_configs("cpu", "room-chair")[0].num_slots == 6
+    assert run_configs("paper", "room-chair")[0].num_slots == 5
+    assert run_configs("cpu", "room-chair", recipe=False)[0].num_slots == 5
+    assert run_configs("cpu", "clevr567")[0].num_slots == 8
     with pytest.raises(ValueError, match="unknown scale"):
         train_config("huge")
     with pytest.raises(ValueError, match="unknown preset"):

@@ -113,7 +113,7 @@ def recipe_configs(
     ``svorf.train.run_configs("cpu", preset)`` for the recipe's presets.
     """
     mcfg, tcfg = run_configs("cpu", preset, recipe=False)
-    mcfg, tcfg = apply_recipe(mcfg, tcfg, levers)
+    mcfg, tcfg = apply_recipe(mcfg, tcfg, levers, preset=preset)
     return mcfg, tcfg.replace(**train_overrides)
 
 
