@@ -22,7 +22,7 @@ from benchmark.scales import SPEED_DEFAULTS, TRADEOFF
 from benchmark.schema import SCALES as REPORT_SCALES
 from svorf import cli as svorf_cli
 from svorf.config import ModelConfig, Scale, model_config
-from svorf.registry import PRESETS, SCALE_NAMES, SCALES, get_scale, recipe_for
+from svorf.registry import PRESETS, SCALE_NAMES, SCALES, get_scale, recipe_for, slots_for
 from svorf.train_config import (
     BOOKKEEPING_FIELDS,
     CPU_RECIPE,
@@ -68,16 +68,19 @@ def test_the_cpu_recipe_is_the_cpu_scales_recipe_for_the_clevr_family():
     assert CPU_RECIPE == recipe.fields and CPU_RECIPE_MODEL_FIELDS == tuple(recipe.model)
     assert CPU_RECIPE_PRESETS == recipe.presets
     assert list(CPU_RECIPE)[:3] == ["ray_sampling", "warmup", "nvs_warmup"]  # train first
+    assert recipe.preset_model == {"room-chair": {"num_slots": 6}}  # a spare slot
+    assert (slots_for("cpu", "room-chair"), slots_for("paper", "room-chair")) == (6, 5)
     for scale in SCALE_NAMES:
         for preset, spec in PRESETS.items():
             m, t = run_configs(scale, preset)
             masked = spec.slot_mask_train
             if recipe_for(scale, preset) is not None:
                 masked = recipe.model.get("slot_mask_train", masked)
-            assert m.num_slots == spec.num_slots and m.slot_mask_train == masked
+            assert m.num_slots == slots_for(scale, preset) and m.slot_mask_train == masked
             if recipe_for(scale, preset) is not None:
                 assert scale == "cpu" and preset in CPU_RECIPE_PRESETS
-                assert all(getattr(m, k) == v for k, v in recipe.model.items())
+                own = recipe.preset_model.get(preset, {})
+                assert all(getattr(m, k) == v for k, v in {**recipe.model, **own}.items())
                 assert all(getattr(t, k) == v for k, v in recipe.train.items())
             else:
                 assert (m, t) == run_configs(scale, preset, recipe=False)
