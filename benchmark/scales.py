@@ -136,7 +136,8 @@ SCALES: dict[str, ScaleSettings] = {
                 "cpu: 64x64 renders, 1,000 training scenes for CLEVR-567 and its held-out-appearance "
                 "twin (240 for the other presets, 400 for Room-Diverse), 50 test "
                 "scenes, the svorf 'cpu' model; CLEVR-567-family and Room-Chair models train with "
-                "the cpu recipe (svorf.registry, docs/notes/cpu_recipe.md), Room-Diverse models "
+                "the cpu recipe (svorf.registry, docs/notes/cpu_recipe.md; Room-Chair with 6 "
+                "slots, the paper's 5 and a spare), Room-Diverse models "
                 "with svorf's cpu schedule (a 2-core machine, hours per protocol)."
             ),
         ),
